@@ -1,0 +1,114 @@
+"""Mesh GNN throughput on CPU (or GPU): training samples/s and rollout frames/s, for one cube and for three cubes.
+
+The single-cube scene is the shipped real cube data. The three-cube scene replays three real tosses side by side,
+1.2 widths apart along x, so bodies pass within the collision radius and the graph has the size and the collision
+edges of a 3-body scene; it is for timing only (the motion is not physical where the cubes overlap).
+    python benchmarks/gnn_speed.py                       # paper network (latent 128, 10 steps), batch 64
+    python benchmarks/gnn_speed.py --latent-size 64 --message-passing-steps 5 --threads 1
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import numpy as np
+import torch
+
+from contactbench.config import REPO_ROOT
+from contactbench.models.base import Context
+from contactbench.models.gnn.module import GNNDataModule, GNNModule
+from contactbench.recordings import Recordings, Split, read_recordings
+
+SIDE_BY_SIDE_SPACING = 1.2  # widths between neighbouring cubes' origins
+
+
+def side_by_side(recordings: Recordings, n_bodies: int) -> Recordings:
+    """Tosses n, n + 1, ... of each split replayed together, body k shifted k * spacing widths along x."""
+    shift = SIDE_BY_SIDE_SPACING * recordings.widths()[0]
+    splits = {}
+    for name, split in recordings.splits.items():
+        count = split.n_trajectories - n_bodies + 1
+        poses = np.concatenate([split.poses[k : k + count] + np.array([k * shift, 0, 0, 0, 0, 0, 0]) for k in range(n_bodies)], axis=2)
+        lengths = np.min([split.lengths[k : k + count] for k in range(n_bodies)], axis=0)
+        poses[np.arange(split.n_frames)[None, :] >= lengths[:, None]] = np.nan
+        splits[name] = Split(poses, lengths)
+    meta = dict(recordings.meta, bodies=[dict(recordings.meta["bodies"][0], name=f"cube_{k}") for k in range(n_bodies)])
+    return dataclasses.replace(recordings, meta=meta, splits=splits)
+
+
+def training_samples_per_second(module: GNNModule, dataset: Recordings, batch_size: int, steps: int) -> float:
+    loader = iter(GNNDataModule(dataset, batch_size=batch_size).train_dataloader())
+    optimizer = module.configure_optimizers()
+
+    def step():
+        batch = next(loader).to(module.device)
+        optimizer.zero_grad()
+        module.simulator.loss(batch, add_noise=True).backward()
+        optimizer.step()
+
+    step()  # warm-up: allocations, first-call dispatch
+    synchronize(module.device)
+    started = time.perf_counter()
+    for _ in range(steps):
+        step()
+    synchronize(module.device)
+    return steps * batch_size / (time.perf_counter() - started)
+
+
+def rollout_frames_per_second(module: GNNModule, dataset: Recordings, trajectories: int, frames: int) -> float:
+    """Predicted frames per second over all trajectories, rolled out together in one batch."""
+    split = dataset.split("val").select(range(trajectories))
+    context_frames = module.hparams.context_frames
+    context = Context(
+        poses=split.poses[:, :context_frames],
+        velocities=np.zeros(split.poses[:, :context_frames].shape[:-1] + (6,)),
+        lengths=np.full(trajectories, context_frames + frames),
+    )
+    model = module.to_contact_model()
+    started = time.perf_counter()
+    model.rollout(dataset, context)
+    synchronize(module.device)
+    return trajectories * frames / (time.perf_counter() - started)
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", default=str(REPO_ROOT / "assets" / "contactnets_cube"), help="a single-body recordings folder")
+    parser.add_argument("--bodies", type=int, nargs="+", default=[1, 3], help="scenes to time: this many copies side by side")
+    parser.add_argument("--latent-size", type=int, default=128)
+    parser.add_argument("--message-passing-steps", type=int, default=10)
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--train-steps", type=int, default=10)
+    parser.add_argument("--rollout-trajectories", type=int, default=16)
+    parser.add_argument("--rollout-frames", type=int, default=50)
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    single = read_recordings(args.dataset, splits=["train", "val"])
+    print(
+        f"device {args.device}, {torch.get_num_threads()} threads, latent {args.latent_size}, "
+        f"{args.message_passing_steps} message-passing steps, batch {args.batch_size}"
+    )
+    for n_bodies in args.bodies:
+        dataset = single if n_bodies == 1 else side_by_side(single, n_bodies)
+        module = GNNModule(dataset, latent_size=args.latent_size, message_passing_steps=args.message_passing_steps).to(args.device)
+        module.setup("fit")
+        samples = training_samples_per_second(module, dataset, args.batch_size, args.train_steps)
+        frames = rollout_frames_per_second(module, dataset, args.rollout_trajectories, args.rollout_frames)
+        print(
+            f"{n_bodies} cube(s), {module.simulator.scene.n_nodes} nodes: training {samples:8.1f} samples/s, "
+            f"rollout {frames:8.1f} frames/s ({args.rollout_trajectories} trajectories batched)"
+        )
+
+
+if __name__ == "__main__":
+    main()

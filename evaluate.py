@@ -1,0 +1,19 @@
+"""Score a model on a split and write metrics.json: python evaluate.py model=mujoco_default dataset=contactnets_cube."""
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from contactbench import runs
+from contactbench.cli import guarded
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
+@guarded
+def main(cfg: DictConfig) -> dict:
+    return runs.evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,33 @@
+"""OmegaConf resolvers the Hydra configs use: repository root and stable variant names."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CONFIG_DIR = REPO_ROOT / "conf"
+
+
+def format_value(value) -> str:
+    """0 and 0.0 name the same variant folder: numbers print in their shortest form ('0', '0.25', '1')."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return str(value)
+    return f"{value:g}"
+
+
+def generations(evaluations: int, num_workers: int, restarts: int) -> int:
+    """Optimiser generations (training steps) of a search: ceil(evaluations / num_workers) per restart."""
+    return -(-int(evaluations) // int(num_workers)) * int(restarts)
+
+
+def register_resolvers() -> None:
+    OmegaConf.register_new_resolver("cb.fmt", format_value, replace=True)
+    OmegaConf.register_new_resolver("cb.root", lambda: str(REPO_ROOT), replace=True)
+    OmegaConf.register_new_resolver("cb.basename", lambda path: Path(str(path)).name, replace=True)
+    OmegaConf.register_new_resolver("cb.generations", generations, replace=True)
+    OmegaConf.register_new_resolver("cb.wandb_offline", lambda: not os.environ.get("WANDB_API_KEY"), replace=True)
+
+
+register_resolvers()

@@ -1,0 +1,94 @@
+"""Score a contact model on one split with the shared protocol and write metrics.json and its CSVs."""
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from contactbench import atomic
+from contactbench.metrics import MetricsResult, compute_metrics
+from contactbench.models.base import ContactModel, make_context
+from contactbench.recordings import Recordings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Score:
+    header: dict  # model, dataset, variant, split, n_trajectories, context_frames
+    metrics: MetricsResult
+    rollout_seconds: float
+
+    def summary(self) -> dict:
+        return {**self.header, **self.metrics.summary, "rollout_seconds": round(self.rollout_seconds, 3)}
+
+
+def score_model(model: ContactModel, dataset: Recordings, split: str, context_frames: int, *, dataset_name: str, variant: str) -> Score:
+    """Roll the model out from the first `context_frames` frames of every trajectory in `split` and score the rest."""
+    recorded = dataset.split(split)
+    context = make_context(recorded, dataset.dt, context_frames)
+    started = time.perf_counter()
+    predicted = model.rollout(dataset, context)
+    elapsed = time.perf_counter() - started
+    expected = (recorded.n_trajectories, context.horizon, dataset.n_bodies, 7)
+    if predicted.shape != expected:
+        raise ValueError(f"model {model.name!r} returned poses of shape {predicted.shape}, expected {expected}")
+    metrics = compute_metrics(
+        recorded.poses[:, : context.horizon],
+        predicted,
+        recorded.lengths,
+        context_frames,
+        [dataset.body_mesh(k) for k in range(dataset.n_bodies)],
+        dataset.floor_z,
+    )
+    header = {
+        "model": model.name,
+        "dataset": dataset_name,
+        "variant": variant,
+        "split": split,
+        "n_trajectories": recorded.n_trajectories,
+        "context_frames": context_frames,
+    }
+    return Score(header, metrics, elapsed)
+
+
+def _json_number(value):
+    if isinstance(value, (np.floating, float)):
+        return None if not math.isfinite(float(value)) else float(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def _csv_text(columns: dict[str, np.ndarray]) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    names = list(columns)
+    writer.writerow(names)
+    for row in zip(*(np.asarray(columns[name]).tolist() for name in names)):
+        writer.writerow(row)
+    return buffer.getvalue()
+
+
+def write_score(score: Score, out_dir: Path) -> dict:
+    """metrics.json (summary + per-frame curves), per_frame.csv and per_trajectory.csv in out_dir."""
+    out_dir = Path(out_dir)
+    per_frame = {"frame": np.arange(len(next(iter(score.metrics.per_frame.values())))), **score.metrics.per_frame}
+    document = {key: _json_number(value) for key, value in score.summary().items()}
+    document["per_frame"] = {key: [_json_number(x) for x in np.asarray(values).tolist()] for key, values in per_frame.items()}
+    atomic.write_json(out_dir / "metrics.json", document)
+    atomic.write_text(out_dir / "per_frame.csv", _csv_text(per_frame))
+    atomic.write_text(out_dir / "per_trajectory.csv", _csv_text({"trajectory": np.arange(score.header["n_trajectories"]), **score.metrics.per_trajectory}))
+    log.info(
+        "%s on %s/%s %s (%d trajectories): pos_err %.4f  rot_err %.4f rad  floor penetration %.2e m",
+        score.header["model"], score.header["dataset"], score.header["variant"], score.header["split"],
+        score.header["n_trajectories"], score.metrics.summary["pos_err"], score.metrics.summary["rot_err_rad"],
+        score.metrics.summary["floor_penetration_m"],
+    )
+    return document

@@ -1,0 +1,192 @@
+"""PyBullet toss simulation; the only module that touches PyBullet and its x, y, z, w quaternions."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pybullet
+
+from contactbench import rotations
+from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.meshes import Mesh
+
+CONTACT_KEYS = ("contact_normal_force", "contact_friction_force", "contact_normal_torque", "contact_friction_torque")
+# Bodies wait here between tosses: far above the floor and 10 m from each other, beyond any contact threshold.
+_PARKING_SPACING = 10.0
+_PARKING_HEIGHT = 10.0
+_IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
+# PyBullet defaults replaced on purpose for every object: 0.04 linear and angular air drag nobody asked for, and
+# a 1 mm collision margin that would keep every object hovering 1 mm above the floor. (The AABB-box inertia
+# default is replaced too, by the mesh's own, in _build.)
+BODY_DYNAMICS_OVERRIDES = {
+    "rollingFriction": 0.0,
+    "spinningFriction": 0.0,
+    "linearDamping": 0.0,
+    "angularDamping": 0.0,
+    "collisionMargin": 0.0,
+}
+
+
+class BulletScene:
+    """A private PyBullet DIRECT world with a floor and `spec.bodies` copies of `mesh`, reusable across tosses."""
+
+    def __init__(self, mesh: Mesh, spec: SceneSpec, settings: BulletSettings = BulletSettings()):
+        com, inertia = mesh.mass_properties(settings.mass)
+        if np.linalg.norm(com) > 1e-9 * mesh.width:
+            raise ValueError(f"mesh frame must sit at the centre of mass; it is off by {com} m")
+        if np.abs(inertia - np.diag(np.diag(inertia))).max() > 1e-9 * np.trace(inertia):
+            raise ValueError("mesh axes must be principal axes of inertia (PyBullet takes a diagonal inertia here)")
+        self.spec = spec
+        self.settings = settings
+        self.inertia_diagonal = np.diag(inertia).copy()
+        self.client = pybullet.connect(pybullet.DIRECT)
+        try:
+            self.floor, self.bodies = self._build(mesh)
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self, mesh: Mesh) -> tuple[int, tuple[int, ...]]:
+        settings, spec, client = self.settings, self.spec, self.client
+        pybullet.setPhysicsEngineParameter(
+            fixedTimeStep=settings.dt,
+            numSubSteps=0,
+            restitutionVelocityThreshold=settings.restitution_velocity_threshold,
+            deterministicOverlappingPairs=1,
+            physicsClientId=client,
+        )
+        pybullet.setGravity(*settings.gravity, physicsClientId=client)
+        floor_shape = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
+        floor = pybullet.createMultiBody(0.0, floor_shape, physicsClientId=client)
+        # PyBullet combines two touching materials by multiplying their frictions and their restitutions, so
+        # with the floor at 1.0 and 1.0 the object's own coefficients are the ones in effect.
+        pybullet.changeDynamics(
+            floor, -1,
+            lateralFriction=settings.floor_friction,
+            restitution=settings.floor_restitution,
+            rollingFriction=0.0,
+            spinningFriction=0.0,
+            physicsClientId=client,
+        )
+        # Without indices PyBullet wraps the vertices in a convex hull: exactly our solids.
+        body_shape = pybullet.createCollisionShape(pybullet.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=client)
+        bodies = []
+        for k in range(spec.bodies):
+            body = pybullet.createMultiBody(settings.mass, body_shape, basePosition=self._parking_spot(k), physicsClientId=client)
+            pybullet.changeDynamics(
+                body, -1,
+                mass=settings.mass,
+                localInertiaDiagonal=self.inertia_diagonal.tolist(),
+                lateralFriction=spec.friction,
+                restitution=spec.restitution,
+                physicsClientId=client,
+                **BODY_DYNAMICS_OVERRIDES,
+            )
+            bodies.append(body)
+        return floor, tuple(bodies)
+
+    @staticmethod
+    def _parking_spot(k: int) -> tuple[float, float, float]:
+        return (_PARKING_SPACING * (k + 1), 0.0, _PARKING_HEIGHT)
+
+    def close(self) -> None:
+        if self.client >= 0:
+            pybullet.disconnect(physicsClientId=self.client)
+            self.client = -1
+
+    def __enter__(self) -> "BulletScene":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def set_state(self, poses: np.ndarray, velocities: np.ndarray) -> None:
+        """Place the bodies at poses [K, 7] (w-first) with velocities [K, 6] (world frame), forgetting past contacts."""
+        poses = np.asarray(poses, dtype=np.float64)
+        velocities = np.asarray(velocities, dtype=np.float64)
+        count = len(self.bodies)
+        if poses.shape != (count, 7) or velocities.shape != (count, 6):
+            raise ValueError(f"expected poses [{count}, 7] and velocities [{count}, 6], got {poses.shape} and {velocities.shape}")
+        client = self.client
+        # Contact manifolds survive a teleport and warm-start the next solve, so a toss would depend on the one
+        # before it. Parking every body far apart and running collision detection once empties all manifolds.
+        for k, body in enumerate(self.bodies):
+            pybullet.resetBasePositionAndOrientation(body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client)
+        pybullet.performCollisionDetection(physicsClientId=client)
+        orientations_xyzw = rotations.wxyz_to_xyzw(poses[:, 3:])
+        for body, pose, orientation, velocity in zip(self.bodies, poses, orientations_xyzw, velocities):
+            pybullet.resetBasePositionAndOrientation(body, pose[:3], orientation, physicsClientId=client)
+            pybullet.resetBaseVelocity(body, velocity[:3], velocity[3:], physicsClientId=client)
+
+    def simulate(
+        self, initial_poses: np.ndarray, initial_velocities: np.ndarray, frames: int, *, record_contacts: bool = False
+    ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Toss from the initial state and record `frames` frames (frame 0 = initial state, one engine step each).
+
+        Returns poses [T, K, 7] (w-first) and velocities [T, K, 6], world frame; with record_contacts also a dict
+        of the CONTACT_KEYS arrays [T, K, 3] (see `_contact_wrenches`), frame 0 all zeros.
+        """
+        if frames < 1:
+            raise ValueError(f"frames must be at least 1, got {frames}")
+        self.set_state(initial_poses, initial_velocities)
+        client, bodies = self.client, self.bodies
+        read_pose, read_velocity = pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
+        # Engine calls dominate the cost of a toss: keep the per-step work to the calls themselves and
+        # convert the collected tuples to arrays once at the end.
+        states = [read_pose(body, client) + read_velocity(body, client) for body in bodies]
+        contact_log: list[tuple[int, tuple]] = []
+        for t in range(1, frames):
+            pybullet.stepSimulation(client)
+            states.extend(read_pose(body, client) + read_velocity(body, client) for body in bodies)
+            if record_contacts:
+                contact_log.extend((t, point) for point in pybullet.getContactPoints(physicsClientId=client))
+        flat = np.fromiter(itertools.chain.from_iterable(itertools.chain.from_iterable(states)), dtype=np.float64)
+        flat = flat.reshape(frames, len(bodies), 13)  # position, quaternion x y z w, linear, angular velocity
+        quaternions = rotations.xyzw_to_wxyz(flat[..., 3:7])
+        # Bullet hands back either sign of a quaternion from one step to the next; pick signs that make each
+        # body's quaternion path continuous, starting on the side of the given initial orientation.
+        previous = np.concatenate([np.asarray(initial_poses, dtype=np.float64)[None, :, 3:], quaternions[:-1]])
+        steps = np.where(np.einsum("tkq,tkq->tk", quaternions, previous) < 0, -1.0, 1.0)
+        quaternions *= np.cumprod(steps, axis=0)[..., None]
+        poses = np.concatenate([flat[..., :3], quaternions], axis=-1)
+        velocities = np.ascontiguousarray(flat[..., 7:])
+        if not record_contacts:
+            return poses, velocities
+        return poses, velocities, self._contact_wrenches(contact_log, poses[..., :3])
+
+    def _contact_wrenches(self, contact_log: list[tuple[int, tuple]], centres: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-frame, per-body contact forces (N) and torques about the centre of mass (N m), [T, K, 3] each.
+
+        PyBullet reports each contact's impulse divided by dt, so m (v_t - v_{t-1}) / dt = m g + total force at
+        frame t. The impulses act at the contact points found before the step, so torques are taken about the
+        centres of mass before the step, `centres` [T, K, 3] at frame t - 1. Floor and body-body contacts count.
+        """
+        frames, count = centres.shape[:2]
+        result = {key: np.zeros((frames, count, 3)) for key in CONTACT_KEYS}
+        if not contact_log:
+            return result
+        index_of = {body: k for k, body in enumerate(self.bodies)}
+        frame = np.array([t for t, _ in contact_log])
+        points = [point for _, point in contact_log]
+        # Per contact: body A, body B, point on A, point on B, normal on B (pointing to A), the normal force and
+        # two friction forces along their directions, all as applied to body A; B gets the opposite.
+        body_a = np.array([index_of.get(c[1], count) for c in points])  # index `count` collects the floor's share
+        body_b = np.array([index_of.get(c[2], count) for c in points])
+        point_a = np.array([c[5] for c in points])
+        point_b = np.array([c[6] for c in points])
+        normal_force = np.array([c[9] for c in points])[:, None] * np.array([c[7] for c in points])
+        friction_force = (
+            np.array([c[10] for c in points])[:, None] * np.array([c[11] for c in points])
+            + np.array([c[12] for c in points])[:, None] * np.array([c[13] for c in points])
+        )
+        padded_centres = np.concatenate([centres, np.zeros((frames, 1, 3))], axis=1)
+        for body, point, sign in ((body_a, point_a, 1.0), (body_b, point_b, -1.0)):
+            arm = point - padded_centres[frame - 1, body]
+            for part, force in (("normal", normal_force), ("friction", friction_force)):
+                force_sum = np.zeros((frames, count + 1, 3))
+                torque_sum = np.zeros((frames, count + 1, 3))
+                np.add.at(force_sum, (frame, body), sign * force)
+                np.add.at(torque_sum, (frame, body), np.cross(arm, sign * force))
+                result[f"contact_{part}_force"] += force_sum[:, :count]
+                result[f"contact_{part}_torque"] += torque_sum[:, :count]
+        return result

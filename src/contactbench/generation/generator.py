@@ -1,0 +1,201 @@
+"""Benchmark dataset generation: seed, sample and simulate every toss of a scene variant, write the recordings."""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.metadata
+import json
+import multiprocessing
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+from tqdm import tqdm
+
+from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, CONTACT_KEYS, BulletScene
+from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
+from contactbench.generation.solids import SOLID_NAMES, solid
+from contactbench.meshes import Mesh
+from contactbench.recordings import FORMAT, VERSION, Recordings, Split, write_recordings
+
+SPLIT_SIZES = {"train": 275, "val": 165, "test": 110}  # tosses per variant (paper, Section 3)
+SEEDING = (
+    "derived_seed = first 63 bits of sha256(json [seed, name, friction, restitution, faces, bodies]); "
+    "toss i (counted across splits in order) draws from numpy default_rng(SeedSequence(derived_seed, spawn_key=(i,)))"
+)
+
+
+def derive_seed(seed: int, spec: SceneSpec) -> int:
+    """The variant's own seed: independent across variants, and unchanged by fields that are not its identity."""
+    identity = [int(seed), spec.name, spec.friction, spec.restitution, spec.faces, spec.bodies]
+    digest = hashlib.sha256(json.dumps(identity).encode("utf-8")).digest()
+    return int.from_bytes(digest[:8], "little") >> 1
+
+
+def toss_rng(derived_seed: int, toss: int) -> np.random.Generator:
+    """Toss `toss`'s own stream, so a toss does not depend on which worker runs it or what ran before."""
+    return np.random.default_rng(np.random.SeedSequence(derived_seed, spawn_key=(toss,)))
+
+
+@dataclass(frozen=True)
+class _Job:
+    mesh: Mesh
+    spec: SceneSpec
+    settings: BulletSettings
+    derived_seed: int
+    split_sizes: tuple[tuple[str, int], ...]
+    record_contacts: bool
+
+    def place(self, toss: int) -> str:
+        """Where toss `toss` lands, e.g. "val toss 3"."""
+        start = 0
+        for name, size in self.split_sizes:
+            if toss < start + size:
+                return f"{name} toss {toss - start}"
+            start += size
+        raise IndexError(f"toss {toss} is beyond the {start} tosses of the splits")
+
+
+class _TossRunner:
+    """Simulates tosses by index in one PyBullet client (one per process)."""
+
+    def __init__(self, job: _Job):
+        self.job = job
+        self.scene = BulletScene(job.mesh, job.spec, job.settings)
+
+    def __call__(self, toss: int) -> tuple:
+        job = self.job
+        try:
+            poses, velocities = sample_initial_state(job.spec, job.mesh, toss_rng(job.derived_seed, toss))
+        except SpawnError as error:
+            raise SpawnError(f"toss {toss} ({job.place(toss)}): {error}") from None
+        return self.scene.simulate(poses, velocities, job.settings.frames, record_contacts=job.record_contacts)
+
+
+_worker_runner: _TossRunner | None = None  # each pool process's own runner, set by _start_worker
+
+
+def _start_worker(job: _Job) -> None:
+    global _worker_runner
+    _worker_runner = _TossRunner(job)
+
+
+def _run_in_worker(toss: int) -> tuple:
+    return _worker_runner(toss)
+
+
+def _simulate_all(job: _Job, workers: int, progress: bool, description: str) -> list[tuple]:
+    total = sum(size for _, size in job.split_sizes)
+    with tqdm(total=total, desc=description, unit="toss", disable=not progress) as bar:
+        if workers == 1:
+            runner = _TossRunner(job)
+            try:
+                results = []
+                for toss in range(total):
+                    results.append(runner(toss))
+                    bar.update()
+                return results
+            finally:
+                runner.scene.close()
+        # "spawn" starts clean interpreters: forking a parent that holds threads (torch, Hydra launchers) is unsafe.
+        context = multiprocessing.get_context("spawn")
+        chunk = max(1, min(16, total // (8 * workers)))
+        with context.Pool(workers, initializer=_start_worker, initargs=(job,)) as pool:
+            results = []
+            for result in pool.imap(_run_in_worker, range(total), chunksize=chunk):
+                results.append(result)
+                bar.update()
+            return results
+
+
+def _stack_split(results: list[tuple], record_contacts: bool, frames: int) -> Split:
+    poses = np.stack([result[0] for result in results])
+    velocities = np.stack([result[1] for result in results])
+    extras = {key: np.stack([result[2][key] for result in results]) for key in CONTACT_KEYS} if record_contacts else {}
+    lengths = np.full(len(results), frames, dtype=np.int64)
+    return Split(poses=poses, lengths=lengths, velocities=velocities, extras=extras)
+
+
+def generate_dataset(
+    spec: SceneSpec,
+    out_dir: str | os.PathLike,
+    *,
+    variant: str = "",
+    settings: BulletSettings = BulletSettings(),
+    split_sizes: Mapping[str, int] = SPLIT_SIZES,
+    seed: int = 0,
+    workers: int = 2,
+    record_contacts: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Simulate one scene variant and write it to `out_dir` as a recordings dataset.
+
+    The dataset is named `spec.name`, or "<spec.name>-<variant>" when `variant` is given (e.g. "friction=0.25").
+    Tosses are numbered across the splits in `split_sizes` order (train 0..274, val 275..439, test 440..549 by
+    default); each has its own random stream, so the files are byte-identical for the same seed and spec
+    whatever `workers` is. With record_contacts each split also holds the CONTACT_KEYS arrays [N, T, K, 3].
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if spec.faces not in SOLID_NAMES:
+        raise ValueError(f"scene {spec.name!r}: no solid with {spec.faces} faces; choose one of {sorted(SOLID_NAMES)}")
+    sizes = tuple((str(name), int(size)) for name, size in split_sizes.items())
+    if not sizes or any(size < 1 for _, size in sizes):
+        raise ValueError(f"every split needs at least one toss, got {dict(split_sizes)}")
+    solid_name = SOLID_NAMES[spec.faces]
+    mesh = solid(spec.faces, settings.width)
+    derived_seed = derive_seed(seed, spec)
+    job = _Job(mesh, spec, settings, derived_seed, sizes, record_contacts)
+    name = f"{spec.name}-{variant}" if variant else spec.name
+    results = _simulate_all(job, min(workers, sum(size for _, size in sizes)), progress, name)
+
+    splits = {}
+    start = 0
+    for split_name, size in sizes:
+        splits[split_name] = _stack_split(results[start : start + size], record_contacts, settings.frames)
+        start += size
+    mesh_path = f"meshes/{solid_name}.obj"
+    _, inertia = mesh.mass_properties(settings.mass)
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "name": name,
+        "dt": settings.dt,
+        "gravity": list(settings.gravity),
+        "floor_z": 0.0,
+        "bodies": [
+            {"name": f"{solid_name}_{k}", "mesh": mesh_path, "mass": settings.mass, "inertia_diagonal": np.diag(inertia).tolist()}
+            for k in range(spec.bodies)
+        ],
+        "splits": {split_name: f"{split_name}.npz" for split_name, _ in sizes},
+        "real": False,
+        "generator": {
+            "engine": "pybullet",
+            "engine_version": importlib.metadata.version("pybullet"),
+            "contactbench_version": importlib.metadata.version("contactbench"),
+            "variant": variant,
+            "solid": solid_name,
+            "seed": int(seed),
+            "derived_seed": derived_seed,
+            "seeding": SEEDING,
+            "split_sizes": dict(sizes),
+            "settings": _plain(dataclasses.asdict(settings)),
+            "scene": _plain(dataclasses.asdict(spec)),
+            "engine_overrides": {
+                "numSubSteps": 0,
+                "deterministicOverlappingPairs": 1,
+                "body_dynamics": dict(BODY_DYNAMICS_OVERRIDES),
+                "inertia": "localInertiaDiagonal from the mesh, uniform density",
+                "material_combination": "PyBullet multiplies the friction and the restitution of the two bodies in contact",
+            },
+            "contacts_recorded": record_contacts,
+        },
+    }
+    return write_recordings(out_dir, Recordings(meta=meta, meshes={mesh_path: mesh}, splits=splits))
+
+
+def _plain(fields: dict) -> dict:
+    """Dataclass fields as JSON values (tuples become lists)."""
+    return {key: list(value) if isinstance(value, tuple) else value for key, value in fields.items()}

@@ -1,0 +1,131 @@
+"""Toss scene settings (paper Table 2a/2b) and sampling of non-overlapping initial states."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from contactbench import rotations
+from contactbench.meshes import Mesh
+
+
+class SpawnError(RuntimeError):
+    """A body could not be placed without overlapping the bodies placed before it."""
+
+
+@dataclass(frozen=True)
+class BulletSettings:
+    """Engine settings shared by every variant (Table 2a) and the common object properties (Section 3)."""
+
+    dt: float = 0.00676  # s per frame; one engine step per frame
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.8)
+    restitution_velocity_threshold: float = 0.0
+    floor_friction: float = 1.0
+    floor_restitution: float = 1.0
+    mass: float = 0.37  # kg, every object
+    width: float = 0.1048  # m, largest axis-aligned bounding-box extent of every object
+    frames: int = 140  # recorded frames per toss, frame 0 being the initial state
+
+    def __post_init__(self) -> None:
+        _set_floats(self, "dt", "restitution_velocity_threshold", "floor_friction", "floor_restitution", "mass", "width")
+        _set_vectors(self, "gravity")
+        object.__setattr__(self, "frames", int(self.frames))
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """One scene variant: object material, shape and count, and the initial-state distribution (Table 2b)."""
+
+    name: str  # dataset name, e.g. "frictioncubes"
+    friction: float
+    restitution: float
+    faces: int = 6  # which solid (6 = cube), see solids.SOLID_NAMES
+    bodies: int = 1
+    center_bias_speed: float = 0.0  # m/s subtracted from each body's xy velocity along its direction from the centre; 0 disables
+    position_low: tuple[float, float, float] = (-0.4, -0.4, 0.13)
+    position_high: tuple[float, float, float] = (0.4, 0.4, 0.15)
+    velocity_low: tuple[float, float, float] = (-1.2, -1.2, 0.0)
+    velocity_high: tuple[float, float, float] = (1.2, 1.2, 0.0)
+    spawn_attempts: int = 100
+
+    def __post_init__(self) -> None:
+        # Hydra hands over ints where floats are meant and ListConfigs where tuples are; normalise so the
+        # spec hashes, compares and serialises the same however it was built.
+        object.__setattr__(self, "name", str(self.name))
+        _set_floats(self, "friction", "restitution", "center_bias_speed")
+        _set_vectors(self, "position_low", "position_high", "velocity_low", "velocity_high")
+        for key in ("faces", "bodies", "spawn_attempts"):
+            object.__setattr__(self, key, int(getattr(self, key)))
+        if self.bodies < 1:
+            raise ValueError(f"scene {self.name!r}: bodies must be at least 1, got {self.bodies}")
+        if self.spawn_attempts < 1:
+            raise ValueError(f"scene {self.name!r}: spawn_attempts must be at least 1, got {self.spawn_attempts}")
+        if np.any(np.greater(self.position_low, self.position_high)) or np.any(np.greater(self.velocity_low, self.velocity_high)):
+            raise ValueError(f"scene {self.name!r}: a lower bound of the initial-state box exceeds its upper bound")
+
+
+def _set_floats(instance: object, *keys: str) -> None:
+    for key in keys:
+        object.__setattr__(instance, key, float(getattr(instance, key)))
+
+
+def _set_vectors(instance: object, *keys: str) -> None:
+    for key in keys:
+        vector = tuple(float(x) for x in getattr(instance, key))
+        if len(vector) != 3:
+            raise ValueError(f"{type(instance).__name__}.{key} needs 3 components, got {vector}")
+        object.__setattr__(instance, key, vector)
+
+
+def sample_initial_state(spec: SceneSpec, mesh: Mesh, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Initial poses [K, 7] (position, quaternion w-first) and velocities [K, 6] (linear, angular; world frame)."""
+    if spec.bodies == 1:
+        orientation = rotations.uniform_random(rng, 1)[0]
+        position = rng.uniform(spec.position_low, spec.position_high)
+        poses = np.concatenate([position, orientation])[None]
+    else:
+        poses = _spawn_without_overlap(spec, mesh, rng)
+    linear = rng.uniform(spec.velocity_low, spec.velocity_high, size=(spec.bodies, 3))
+    if spec.center_bias_speed > 0:
+        centre = (np.asarray(spec.position_low[:2]) + np.asarray(spec.position_high[:2])) / 2.0
+        offset = poses[:, :2] - centre
+        distance = np.linalg.norm(offset, axis=1, keepdims=True)
+        # A body exactly at the centre has no direction to be biased along.
+        direction = np.divide(offset, distance, out=np.zeros_like(offset), where=distance > 0)
+        linear[:, :2] -= spec.center_bias_speed * direction
+    velocities = np.concatenate([linear, np.zeros((spec.bodies, 3))], axis=1)
+    return poses, velocities
+
+
+def _spawn_without_overlap(spec: SceneSpec, mesh: Mesh, rng: np.random.Generator) -> np.ndarray:
+    """Iterative spawning after Greff et al. (2022, Kubric): each body gets a fresh rotation and position
+    until its axis-aligned box overlaps none of the boxes placed before it."""
+    low = np.asarray(spec.position_low)
+    high = np.asarray(spec.position_high)
+    poses = np.empty((spec.bodies, 7))
+    boxes_low = np.empty((spec.bodies, 3))
+    boxes_high = np.empty((spec.bodies, 3))
+    for body in range(spec.bodies):
+        for _ in range(spec.spawn_attempts):
+            orientation = rotations.uniform_random(rng, 1)[0]
+            rotated = rotations.rotate(orientation, mesh.vertices)
+            extent_low, extent_high = rotated.min(axis=0), rotated.max(axis=0)
+            # x, y: the whole box stays inside the spawn region. z: the region (2 cm) is thinner than any object,
+            # so, as for a single body, the centre's height is drawn from the region itself.
+            centre_low = np.concatenate([low[:2] - extent_low[:2], low[2:]])
+            centre_high = np.concatenate([high[:2] - extent_high[:2], high[2:]])
+            if np.any(centre_low > centre_high):
+                continue
+            position = rng.uniform(centre_low, centre_high)
+            box_low, box_high = position + extent_low, position + extent_high
+            overlaps = np.all((box_low < boxes_high[:body]) & (boxes_low[:body] < box_high), axis=1)
+            if not overlaps.any():
+                break
+        else:
+            raise SpawnError(
+                f"body {body} of {spec.bodies} could not be placed without overlapping the bodies before it "
+                f"in {spec.spawn_attempts} attempts (scene {spec.name!r}, spawn region {spec.position_low}..{spec.position_high})"
+            )
+        poses[body] = np.concatenate([position, orientation])
+        boxes_low[body], boxes_high[body] = box_low, box_high
+    return poses

@@ -1,0 +1,187 @@
+"""Lightning wrappers of the mesh GNN: training windows from train, rollout validation on val, checkpoints.
+
+`GNNDataModule` serves windows of H + 2 consecutive frames of world vertex positions (H + 1 inputs and the next
+frame), sampled uniformly over all valid windows of the train split, batch 64 (paper); its validation loader serves a
+fixed, evenly spaced subset of the val split's windows for the one-step loss. `GNNModule` trains with Adam at
+lr 1e-4 (paper) on the noisy one-step loss; at each validation it also rolls out a fixed, evenly spaced subset of
+`val_rollouts` val trajectories from the shared protocol's context (`make_context`) and logs
+`val/rollout_pos_err` (position error / width, mean over the predicted frames of each trajectory, then over
+trajectories, as `metrics.compute_metrics` averages), the quantity models are selected on (paper), plus
+`val/rollout_rot_err` (rad) and `val/one_step_loss`. The test split is never read here.
+Normalisation statistics are computed from the train split when fitting starts and live in buffers, so
+`GNNModule.load_from_checkpoint(path, dataset=recordings, weights_only=True)` restores a usable model.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+
+from contactbench.metrics import position_error, rotation_error
+from contactbench.models.base import make_context
+from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, MeshScene, collision_radius
+from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
+from contactbench.recordings import Recordings, Split
+
+
+def evenly_spaced(count: int, chosen: int | None) -> np.ndarray:
+    """`chosen` indices spread evenly over range(count) (all of them when chosen is None or not smaller)."""
+    if chosen is None or chosen >= count:
+        return np.arange(count)
+    return np.unique(np.linspace(0, count - 1, chosen).round().astype(np.int64))
+
+
+def check_history_fits(context_frames: int, velocity_history: int) -> None:
+    if context_frames < velocity_history + 1:
+        raise ValueError(f"{velocity_history} velocities need {velocity_history + 1} context frames; the protocol gives {context_frames}")
+
+
+class VertexWindows(Dataset):
+    """Windows [window_frames, n, 3] (float32) of consecutive world vertex positions inside one split's trajectories.
+
+    Meant to be indexed with a whole batch of window indices at once (a BatchSampler as the DataLoader's sampler),
+    so a batch's vertices are placed in one vectorised call.
+    """
+
+    def __init__(self, split: Split, scene: MeshScene, window_frames: int, max_windows: int | None = None):
+        fits = np.arange(split.n_frames)[None, :] <= (split.lengths - window_frames)[:, None]
+        trajectories, starts = np.nonzero(fits)
+        keep = evenly_spaced(len(trajectories), max_windows)
+        self.trajectories, self.starts = trajectories[keep], starts[keep]
+        self.poses = split.poses
+        self.scene = scene
+        self.window_frames = window_frames
+
+    def __len__(self) -> int:
+        return len(self.trajectories)
+
+    def __getitem__(self, indices) -> torch.Tensor:
+        indices = np.asarray(indices)
+        frames = self.starts[indices][..., None] + np.arange(self.window_frames)
+        poses = self.poses[self.trajectories[indices][..., None], frames]
+        return torch.from_numpy(self.scene.world_vertices(poses).astype(np.float32))
+
+
+class GNNDataModule(pl.LightningDataModule):
+    """Training windows from the train split, one-step validation windows from the val split."""
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int = 6,
+        batch_size: int = 64,
+        num_workers: int = 0,
+        velocity_history: int = 5,
+        val_windows: int | None = 4096,
+        val_batch_size: int = 256,
+    ):
+        super().__init__()
+        check_history_fits(context_frames, velocity_history)
+        self.dataset = dataset
+        self.scene = MeshScene.from_recordings(dataset)
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.window_frames = velocity_history + 2
+        self.val_windows = val_windows
+        self.val_batch_size = val_batch_size
+
+    def _loader(self, windows: VertexWindows, sampler, batch_size: int) -> DataLoader:
+        if len(windows) == 0:
+            raise ValueError(f"no trajectory of dataset {self.dataset.name!r} has the {self.window_frames} frames one training window needs")
+        return DataLoader(
+            windows,
+            sampler=BatchSampler(sampler, batch_size, drop_last=False),
+            batch_size=None,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        windows = VertexWindows(self.dataset.split("train"), self.scene, self.window_frames)
+        return self._loader(windows, RandomSampler(windows), self.batch_size)
+
+    def val_dataloader(self) -> DataLoader:
+        windows = VertexWindows(self.dataset.split("val"), self.scene, self.window_frames, self.val_windows)
+        return self._loader(windows, SequentialSampler(windows), self.val_batch_size)
+
+
+class GNNModule(pl.LightningModule):
+    """Trains the learned simulator; `to_contact_model()` gives the ContactModel the benchmark scores."""
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int = 6,
+        latent_size: int = 128,
+        message_passing_steps: int = 10,
+        mlp_hidden_layers: int = 2,
+        lr: float = 1e-4,
+        noise_std: float = 3e-4,
+        velocity_history: int = 5,
+        collision_radius_fraction: float = DEFAULT_COLLISION_RADIUS_FRACTION,
+        val_rollouts: int | None = 16,
+        per_step_projection: bool = False,
+        rollout_batch_size: int = 256,
+    ):
+        super().__init__()
+        self.save_hyperparameters(ignore=["dataset"])
+        check_history_fits(context_frames, velocity_history)
+        self.dataset = dataset
+        scene = MeshScene.from_recordings(dataset)
+        self.simulator = LearnedSimulator(
+            scene,
+            dt=dataset.dt,
+            floor_z=dataset.floor_z,
+            radius=collision_radius(scene.widths, collision_radius_fraction),
+            velocity_history=velocity_history,
+            latent_size=latent_size,
+            message_passing_steps=message_passing_steps,
+            hidden_layers=mlp_hidden_layers,
+            noise_std=noise_std,
+        )
+
+    def setup(self, stage: str) -> None:
+        if stage == "fit" and not bool(self.simulator.normalisation_fitted):
+            self.simulator.fit_normalisation(self.dataset.split("train"))
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+    def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
+        loss = self.simulator.loss(batch, add_noise=True)
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch))
+        return loss
+
+    def validation_step(self, batch: torch.Tensor, batch_idx: int) -> None:
+        self.log("val/one_step_loss", self.simulator.loss(batch, add_noise=False), batch_size=len(batch))
+
+    def on_validation_epoch_end(self) -> None:
+        errors = self.validation_rollout_errors()
+        self.log("val/rollout_pos_err", errors["pos_err"], prog_bar=True)
+        self.log("val/rollout_rot_err", errors["rot_err"])
+
+    def validation_rollout_errors(self) -> dict[str, float]:
+        """Mean position (/ width) and rotation (rad) errors of rollouts of the chosen val trajectories."""
+        split = self.dataset.split("val")
+        context_frames = self.hparams.context_frames
+        long_enough = np.flatnonzero(split.lengths > context_frames)
+        chosen = split.select(long_enough[evenly_spaced(len(long_enough), self.hparams.val_rollouts)])
+        context = make_context(chosen, self.dataset.dt, context_frames)
+        predicted = self.to_contact_model().rollout(self.dataset, context)
+        recorded = chosen.poses[:, : context.horizon]
+        frames = np.arange(context.horizon)
+        scored = (frames >= context_frames) & (frames < chosen.lengths[:, None])
+        per_frame = {
+            "pos_err": position_error(recorded, predicted, self.dataset.widths()).mean(axis=-1),
+            "rot_err": rotation_error(recorded, predicted).mean(axis=-1),
+        }
+        return {
+            name: float((np.where(scored, values, 0.0).sum(axis=1) / scored.sum(axis=1)).mean())
+            for name, values in per_frame.items()
+        }
+
+    def to_contact_model(self) -> GNNContactModel:
+        if not bool(self.simulator.normalisation_fitted):
+            raise RuntimeError("the GNN has no normalisation statistics yet: train it (or load a checkpoint) first")
+        return GNNContactModel(self.simulator, self.hparams.per_step_projection, self.hparams.rollout_batch_size)

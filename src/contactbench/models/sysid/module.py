@@ -1,0 +1,228 @@
+"""SysID as a non-gradient Lightning run: trainer.fit ticks, the NevergradSearch callback asks, rolls out and tells."""
+from __future__ import annotations
+
+import io
+import logging
+import os
+import pickle
+import threading
+from pathlib import Path
+
+import nevergrad as ng
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from nevergrad.optimization import recaster
+from torch.utils.data import DataLoader
+
+from contactbench.models.analytical import MujocoContactModel
+from contactbench.models.sysid.objective import ConfigurationObjective
+from contactbench.models.sysid.search_space import SearchSpace
+from contactbench.recordings import Recordings
+from contactbench.sim.rollout import MujocoRollouts
+
+log = logging.getLogger(__name__)
+
+
+class SysIDDataModule(pl.LightningDataModule):
+    """Ticks the trainer once per optimiser generation. The search draws each generation's trajectories itself,
+    from its own checkpointed counters, so a resumed run draws exactly what an uninterrupted one would."""
+
+    def __init__(self, dataset: Recordings, context_frames: int, generations: int):
+        super().__init__()
+        self.generations = int(generations)
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(range(self.generations), batch_size=None)
+
+
+class SysIDModule(pl.LightningModule):
+    """Holds the search configuration and, once the search is over, the parameters selected on val."""
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int,
+        evaluations: int,
+        restarts: int,
+        num_workers: int,
+        batch_trajectories: int | None,
+        val_trajectories: int | None,
+        optimizer: str = "NGOpt",
+        seed: int = 0,
+        unstable_penalty: float = 1e3,
+        timeout_s: float = 120.0,
+        nthread: int | None = None,
+        substeps: int = 1,
+    ):
+        super().__init__()
+        self.save_hyperparameters(ignore=["dataset"])
+        self.automatic_optimization = False
+        self.dataset = dataset
+        self.space = SearchSpace(dataset.n_bodies)
+        self.register_buffer("selected", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64))
+        self.register_buffer("selected_val_loss", torch.tensor(float("inf"), dtype=torch.float64))
+
+    @property
+    def generations_per_restart(self) -> int:
+        return -(-self.hparams.evaluations // self.hparams.num_workers)
+
+    @property
+    def total_generations(self) -> int:
+        return self.generations_per_restart * self.hparams.restarts
+
+    def configure_optimizers(self):
+        return None
+
+    def training_step(self, batch, batch_index):
+        return None  # the NevergradSearch callback does the work of a step
+
+    def to_contact_model(self) -> MujocoContactModel:
+        if not torch.isfinite(self.selected).all():
+            raise RuntimeError("the SysID search has not selected parameters yet (no finished run in this checkpoint)")
+        parameters = self.space.from_vector(self.selected.cpu().numpy())
+        return MujocoContactModel(name="sysid", parameters=parameters, substeps=self.hparams.substeps)
+
+    def fitted_summary(self) -> dict:
+        return {"parameters": self.space.describe(self.space.from_vector(self.selected.cpu().numpy())), "val_loss": float(self.selected_val_loss)}
+
+
+def stop_recast_threads() -> None:
+    """nevergrad's recast optimisers run in non-daemon threads that would keep the process alive (issues #180, #325)."""
+    for thread in threading.enumerate():
+        if isinstance(thread, recaster._MessagingThread):
+            thread.stop()
+
+
+class NevergradSearch(pl.Callback):
+    """Runs `restarts` independent NGOpt searches of `evaluations` each, one generation per training step.
+
+    Per generation: ask `num_workers` candidates, roll all of them out on one mini-batch of train trajectories in a
+    single batched MuJoCo call, tell the losses. After each restart its recommendation is scored on val; the restart
+    with the best val score is selected (paper §4.2). The optimiser's pickled state, the restart results and the
+    counters live in the checkpoint, so a killed run resumes where it stopped.
+    """
+
+    def __init__(self):
+        self.optimizer: ng.optimizers.base.Optimizer | None = None
+        self.restart = 0
+        self.generation = 0  # within the current restart
+        self.evaluations = 0
+        self.unstable = 0
+        self.results: list[dict] = []  # per finished restart: vector, val_loss, best_train_loss
+
+    # ------------------------------------------------------------ lifecycle
+
+    def on_fit_start(self, trainer, module: SysIDModule) -> None:
+        h = module.hparams
+        rollouts = MujocoRollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
+        penalties = {"unstable_penalty": h.unstable_penalty, "timeout_s": h.timeout_s}
+        self.train_objective = ConfigurationObjective(module.dataset, "train", h.context_frames, rollouts, **penalties)
+        self.val_objective = ConfigurationObjective(module.dataset, "val", h.context_frames, rollouts, **penalties)
+        log.info(
+            "SysID search: restart %d/%d, generation %d, %d evaluations done so far (%d per restart)",
+            min(self.restart + 1, h.restarts), h.restarts, self.generation, self.evaluations, h.evaluations,
+        )
+
+    def on_fit_end(self, trainer, module) -> None:
+        stop_recast_threads()
+        self.train_objective.close()
+        self.val_objective.close()
+
+    # ------------------------------------------------------------ one generation per step
+
+    def on_train_batch_start(self, trainer, module: SysIDModule, batch, batch_index) -> None:
+        h = module.hparams
+        if self.restart >= h.restarts:  # a resumed run that had already finished
+            trainer.should_stop = True
+            return
+        if self.optimizer is None:
+            self.optimizer = self._new_optimizer(module)
+        remaining = h.evaluations - self.generation * h.num_workers
+        candidates = [self.optimizer.ask() for _ in range(min(h.num_workers, remaining))]
+        indices = self._batch(module)
+        result = self.train_objective([module.space.to_parameters(c.value) for c in candidates], indices)
+        for candidate, loss in zip(candidates, result.losses):
+            self.optimizer.tell(candidate, float(loss))
+        self.generation += 1
+        self.evaluations += len(candidates)
+        self.unstable += int(result.unstable.sum())
+        module.log_dict(
+            {"train/loss": float(result.losses.min()), "train/evaluations": float(self.evaluations), "train/unstable_candidates": float(self.unstable), "train/restart": float(self.restart)},
+            on_step=True,
+        )
+        if self.generation >= module.generations_per_restart:
+            self._finish_restart(module)
+            trainer.should_stop = self.restart >= h.restarts
+        self._save_checkpoint(trainer)
+
+    def _save_checkpoint(self, trainer) -> None:
+        """After every generation, atomically: a SIGKILL loses at most the generation in flight.
+
+        (Lightning's step counter does not move without a torch optimiser, so ModelCheckpoint cannot schedule this.)
+        """
+        path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(".last.ckpt.partial")
+        trainer.save_checkpoint(str(partial))
+        os.replace(partial, path)
+
+    def _new_optimizer(self, module: SysIDModule):
+        h = module.hparams
+        space = module.space.parametrization(seed=h.seed * 1000 + self.restart)
+        return ng.optimizers.registry[h.optimizer](parametrization=space, budget=h.evaluations, num_workers=h.num_workers)
+
+    def _batch(self, module: SysIDModule) -> np.ndarray:
+        h = module.hparams
+        n = self.train_objective.n_trajectories
+        if not h.batch_trajectories or h.batch_trajectories >= n:
+            return np.arange(n)
+        rng = np.random.default_rng([h.seed, self.restart, self.generation])
+        return np.sort(rng.choice(n, size=h.batch_trajectories, replace=False))
+
+    def _finish_restart(self, module: SysIDModule) -> None:
+        h = module.hparams
+        recommendation = module.space.to_parameters(self.optimizer.provide_recommendation().value)
+        val_indices = self._val_indices(module)
+        val_loss = float(self.val_objective([recommendation], val_indices).losses[0])
+        vector = module.space.to_vector(recommendation)
+        self.results.append({"vector": vector.tolist(), "val_loss": val_loss})
+        module.log_dict({"val/loss": val_loss, **{f"params/{k}": v for k, v in module.space.describe(recommendation).items()}}, on_step=True)
+        log.info("SysID restart %d/%d: val loss %.5f with %s", self.restart + 1, h.restarts, val_loss, module.space.describe(recommendation))
+        stop_recast_threads()
+        self.optimizer = None
+        self.restart += 1
+        self.generation = 0
+        best = min(self.results, key=lambda r: r["val_loss"])
+        module.selected.copy_(torch.tensor(best["vector"], dtype=torch.float64))
+        module.selected_val_loss.fill_(best["val_loss"])
+
+    def _val_indices(self, module: SysIDModule) -> np.ndarray:
+        n = self.val_objective.n_trajectories
+        count = module.hparams.val_trajectories
+        if not count or count >= n:
+            return np.arange(n)
+        return np.sort(np.random.default_rng([module.hparams.seed, 7]).choice(n, size=count, replace=False))
+
+    # ------------------------------------------------------------ checkpointing
+
+    def state_dict(self) -> dict:
+        optimizer = b"" if self.optimizer is None else pickle.dumps(self.optimizer)
+        return {
+            "optimizer": torch.frombuffer(bytearray(optimizer), dtype=torch.uint8) if optimizer else torch.zeros(0, dtype=torch.uint8),
+            "restart": self.restart,
+            "generation": self.generation,
+            "evaluations": self.evaluations,
+            "unstable": self.unstable,
+            "results": self.results,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        payload = state["optimizer"].numpy().tobytes()
+        # The optimiser state is this run's own checkpoint (written above), never a downloaded file.
+        self.optimizer = pickle.load(io.BytesIO(payload)) if payload else None
+        self.restart = int(state["restart"])
+        self.generation = int(state["generation"])
+        self.evaluations = int(state["evaluations"])
+        self.unstable = int(state["unstable"])
+        self.results = list(state["results"])

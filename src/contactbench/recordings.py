@@ -1,0 +1,332 @@
+"""The one reader, validator and writer of the recordings format (shared/RECORDINGS.md, version 1)."""
+from __future__ import annotations
+
+import copy
+import shutil
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from contactbench import atomic
+from contactbench.errors import ContactbenchError
+from contactbench.meshes import Mesh, MeshError, obj_text, read_obj
+
+FORMAT = "rigid-contact-recordings"
+VERSION = 1
+QUATERNION_TOLERANCE = 1e-3
+
+class RecordingsError(ContactbenchError):
+    """A dataset that does not follow the recordings format; the message names file, field and place."""
+
+@dataclass(frozen=True)
+class Body:
+    name: str
+    mesh: str  # OBJ path relative to the dataset folder
+    mass: float  # kg
+    inertia_diagonal: tuple[float, float, float] | None  # kg m^2 about axes through the CoM parallel to the mesh frame
+
+@dataclass
+class Split:
+    poses: np.ndarray  # [N, T, K, 7] position (m) then quaternion w, x, y, z; world frame
+    lengths: np.ndarray  # [N] valid frames per trajectory
+    velocities: np.ndarray | None = None  # [N, T, K, 6] linear (m/s) then angular (rad/s), world frame
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_trajectories(self) -> int:
+        return self.poses.shape[0]
+
+    @property
+    def n_frames(self) -> int:
+        return self.poses.shape[1]
+
+    @property
+    def n_bodies(self) -> int:
+        return self.poses.shape[2]
+
+    def valid_mask(self) -> np.ndarray:
+        """[N, T] True where a frame is inside its trajectory."""
+        return np.arange(self.n_frames)[None, :] < self.lengths[:, None]
+
+    def select(self, indices: Iterable[int] | np.ndarray) -> "Split":
+        """The trajectories at `indices`, trimmed to the longest of them."""
+        indices = np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices, dtype=np.int64)
+        lengths = self.lengths[indices]
+        horizon = int(lengths.max()) if len(lengths) else 0
+        extras = {
+            name: value[indices] if value.ndim and value.shape[0] == self.n_trajectories else value
+            for name, value in self.extras.items()
+        }
+        velocities = None if self.velocities is None else self.velocities[indices, :horizon]
+        return Split(self.poses[indices, :horizon], lengths, velocities, extras)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        arrays = dict(self.extras)
+        arrays["poses"] = self.poses
+        arrays["lengths"] = self.lengths
+        if self.velocities is not None:
+            arrays["velocities"] = self.velocities
+        return arrays
+
+@dataclass
+class Recordings:
+    meta: dict  # meta.json as read; unknown keys are kept and written back
+    meshes: dict[str, Mesh]  # by the mesh path used in meta.bodies
+    splits: dict[str, Split]
+    root: Path | None = None
+
+    @property
+    def name(self) -> str:
+        return self.meta["name"]
+
+    @property
+    def dt(self) -> float:
+        return float(self.meta["dt"])
+
+    @property
+    def gravity(self) -> np.ndarray:
+        return np.asarray(self.meta["gravity"], dtype=np.float64)
+
+    @property
+    def floor_z(self) -> float:
+        return float(self.meta.get("floor_z", 0.0))
+
+    @property
+    def real(self) -> bool:
+        return bool(self.meta.get("real", False))
+
+    @property
+    def bodies(self) -> list[Body]:
+        return [
+            Body(
+                name=entry["name"],
+                mesh=entry["mesh"],
+                mass=float(entry["mass"]),
+                inertia_diagonal=tuple(float(x) for x in entry["inertia_diagonal"]) if "inertia_diagonal" in entry else None,
+            )
+            for entry in self.meta["bodies"]
+        ]
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.meta["bodies"])
+
+    def body_mesh(self, k: int) -> Mesh:
+        return self.meshes[self.meta["bodies"][k]["mesh"]]
+
+    def widths(self) -> np.ndarray:
+        """Per-body width w_k: the largest extent of the mesh's axis-aligned bounding box (m)."""
+        return np.array([self.body_mesh(k).width for k in range(self.n_bodies)])
+
+    def mass_properties(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Body k's centre of mass in the mesh frame and its inertia tensor about the CoM (mesh-frame axes)."""
+        body = self.bodies[k]
+        com, inertia = self.body_mesh(k).mass_properties(body.mass)
+        if body.inertia_diagonal is not None:
+            inertia = np.diag(body.inertia_diagonal)
+        return com, inertia
+
+    def split(self, name: str) -> Split:
+        if name not in self.splits:
+            where = self.root or self.name
+            raise RecordingsError(f"{where}: split {name!r} not loaded (available: {sorted(self.splits)})")
+        return self.splits[name]
+
+    def without_generator(self) -> "Recordings":
+        """The same recordings with meta.generator removed (what a blind diagnosis may see)."""
+        meta = copy.deepcopy(self.meta)
+        meta.pop("generator", None)
+        return replace(self, meta=meta)
+
+# ---------------------------------------------------------------- validation
+
+def _fail(where: str, message: str) -> RecordingsError:
+    return RecordingsError(f"{where}: {message}")
+
+def _require(meta: Mapping, key: str, types: type | tuple[type, ...], where: str, expected: str):
+    if key not in meta:
+        raise _fail(where, f"field '{key}' is missing (expected {expected})")
+    value = meta[key]
+    if isinstance(value, bool) or not isinstance(value, types):
+        raise _fail(where, f"field '{key}' is {value!r} (expected {expected})")
+    return value
+
+def _vector(meta: Mapping, key: str, size: int, where: str) -> list[float]:
+    value = meta[key]
+    if (
+        not isinstance(value, list)
+        or len(value) != size
+        or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in value)
+    ):
+        raise _fail(where, f"field '{key}' is {value!r} (expected a list of {size} finite numbers)")
+    return value
+
+def validate_meta(meta: object, where: str) -> None:
+    if not isinstance(meta, dict):
+        raise _fail(where, "expected a JSON object")
+    if meta.get("format") != FORMAT:
+        raise _fail(where, f"field 'format' is {meta.get('format')!r} (expected {FORMAT!r})")
+    if meta.get("version") != VERSION or isinstance(meta.get("version"), bool):
+        raise _fail(where, f"field 'version' is {meta.get('version')!r} (expected {VERSION}; this reader knows version {VERSION} only)")
+    _require(meta, "name", str, where, "a string")
+    dt = _require(meta, "dt", (int, float), where, "seconds between frames, a positive number")
+    if not (np.isfinite(dt) and dt > 0):
+        raise _fail(where, f"field 'dt' is {dt!r} (expected a positive number of seconds)")
+    _require(meta, "gravity", list, where, "[gx, gy, gz] in m/s^2")
+    _vector(meta, "gravity", 3, where)
+    if "floor_z" in meta:
+        floor_z = _require(meta, "floor_z", (int, float), where, "a finite number of metres")
+        if not np.isfinite(floor_z):
+            raise _fail(where, f"field 'floor_z' is {floor_z!r} (expected a finite number of metres)")
+    bodies = _require(meta, "bodies", list, where, "a non-empty list of bodies")
+    if not bodies:
+        raise _fail(where, "field 'bodies' is empty (expected at least one body)")
+    for k, body in enumerate(bodies):
+        body_where = f"{where}: bodies[{k}]"
+        if not isinstance(body, dict):
+            raise _fail(body_where, "expected an object with name, mesh, mass")
+        _require(body, "name", str, body_where, "a string")
+        _require(body, "mesh", str, body_where, "an OBJ path relative to the dataset folder")
+        mass = _require(body, "mass", (int, float), body_where, "a positive mass in kg")
+        if not (np.isfinite(mass) and mass > 0):
+            raise _fail(body_where, f"field 'mass' is {mass!r} (expected a positive mass in kg)")
+        if "inertia_diagonal" in body:
+            inertia = _vector(body, "inertia_diagonal", 3, body_where)
+            if min(inertia) <= 0:
+                raise _fail(body_where, f"field 'inertia_diagonal' is {inertia!r} (expected three positive kg m^2)")
+    splits = _require(meta, "splits", dict, where, "an object mapping split names to .npz files")
+    if not splits or not all(isinstance(v, str) for v in splits.values()):
+        raise _fail(where, f"field 'splits' is {splits!r} (expected split name -> npz file path)")
+
+def validate_split(split: Split, n_bodies: int, where: str) -> None:
+    poses = split.poses
+    if poses.ndim != 4 or poses.shape[2] != n_bodies or poses.shape[3] != 7:
+        raise _fail(where, f"field 'poses' has shape {poses.shape} (expected [N, T, K={n_bodies}, 7] for the {n_bodies} bodies in meta.json)")
+    n, horizon = poses.shape[:2]
+    if n == 0 or horizon == 0:
+        raise _fail(where, f"field 'poses' has shape {poses.shape} (expected at least one trajectory and one frame)")
+    lengths = split.lengths
+    if lengths.shape != (n,):
+        raise _fail(where, f"field 'lengths' has shape {lengths.shape} (expected [{n}], one per trajectory)")
+    bad = np.flatnonzero((lengths < 1) | (lengths > horizon))
+    if len(bad):
+        raise _fail(where, f"field 'lengths': trajectory {bad[0]} has length {lengths[bad[0]]} (expected 1..{horizon})")
+    valid = split.valid_mask()
+    _check_finite(poses, valid, "poses", where)
+    norms = np.linalg.norm(poses[..., 3:], axis=-1)
+    off = valid[..., None] & (np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
+    if off.any():
+        t_n, t_t, t_k = np.argwhere(off)[0]
+        raise _fail(where, f"field 'poses': trajectory {t_n}, frame {t_t}, body {t_k}: quaternion norm {norms[t_n, t_t, t_k]:.6f} (expected a unit quaternion within {QUATERNION_TOLERANCE})")
+    if split.velocities is not None:
+        velocities = split.velocities
+        if velocities.shape != poses.shape[:3] + (6,):
+            raise _fail(where, f"field 'velocities' has shape {velocities.shape} (expected {poses.shape[:3] + (6,)}, like poses with 6 components)")
+        _check_finite(velocities, valid, "velocities", where)
+
+def _check_finite(array: np.ndarray, valid: np.ndarray, name: str, where: str) -> None:
+    bad = valid[..., None, None] & ~np.isfinite(array)
+    if bad.any():
+        t_n, t_t, t_k = np.argwhere(bad)[0][:3]
+        raise _fail(where, f"field '{name}': trajectory {t_n}, frame {t_t}, body {t_k}: NaN or infinite value inside the valid frames")
+
+def _float_array(archive, name: str, where: str) -> np.ndarray:
+    array = archive[name]
+    if not np.issubdtype(array.dtype, np.floating):
+        raise _fail(where, f"field '{name}' has dtype {array.dtype} (expected float64)")
+    return array.astype(np.float64, copy=False)
+
+# ---------------------------------------------------------------- reading
+
+def read_meta(root: str | os.PathLike) -> dict:
+    path = Path(root) / "meta.json"
+    if not Path(root).is_dir():
+        raise RecordingsError(f"{root}: not a dataset folder (expected a folder with meta.json)")
+    if not path.is_file():
+        raise RecordingsError(f"{path}: missing (every recordings dataset needs meta.json)")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise RecordingsError(f"{path}: not valid JSON ({error})") from None
+    validate_meta(meta, str(path))
+    return meta
+
+def read_split(path: Path, n_bodies: int) -> Split:
+    where = str(path)
+    if not path.is_file():
+        raise RecordingsError(f"{path}: split file missing (named in meta.json 'splits')")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            if "poses" not in archive.files:
+                raise _fail(where, "field 'poses' is missing (expected float64 [N, T, K, 7])")
+            poses = _float_array(archive, "poses", where)
+            if "lengths" in archive.files:
+                lengths = archive["lengths"]
+                if not np.issubdtype(lengths.dtype, np.integer):
+                    raise _fail(where, f"field 'lengths' has dtype {lengths.dtype} (expected int64)")
+                lengths = lengths.astype(np.int64)
+            else:
+                lengths = np.full(poses.shape[0] if poses.ndim else 0, poses.shape[1] if poses.ndim > 1 else 0, dtype=np.int64)
+            velocities = _float_array(archive, "velocities", where) if "velocities" in archive.files else None
+            extras = {name: archive[name] for name in archive.files if name not in ("poses", "lengths", "velocities")}
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
+        raise _fail(where, f"not a readable .npz archive ({error})") from None
+    except ValueError as error:
+        if isinstance(error, RecordingsError):
+            raise
+        raise _fail(where, f"cannot be read without unpickling ({error}); arrays must be plain numeric") from None
+    split = Split(poses, lengths, velocities, extras)
+    validate_split(split, n_bodies, where)
+    return split
+
+def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None) -> Recordings:
+    """Read and validate a dataset folder; `splits` limits which split files are loaded (default: all)."""
+    root = Path(root)
+    meta = read_meta(root)
+    meshes: dict[str, Mesh] = {}
+    for k, body in enumerate(meta["bodies"]):
+        if body["mesh"] in meshes:
+            continue
+        mesh_path = root / body["mesh"]
+        if not mesh_path.is_file():
+            raise RecordingsError(f"{mesh_path}: mesh file missing (meta.json bodies[{k}].mesh)")
+        try:
+            meshes[body["mesh"]] = read_obj(mesh_path)
+        except MeshError as error:
+            raise RecordingsError(f"{error} (meta.json bodies[{k}].mesh)") from None
+    wanted = list(meta["splits"]) if splits is None else list(splits)
+    unknown = [name for name in wanted if name not in meta["splits"]]
+    if unknown:
+        raise RecordingsError(f"{root / 'meta.json'}: field 'splits' has no split {unknown[0]!r} (it has {sorted(meta['splits'])})")
+    loaded = {name: read_split(root / meta["splits"][name], len(meta["bodies"])) for name in wanted}
+    return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
+
+# ---------------------------------------------------------------- writing
+
+def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
+    """Validate, then write the whole dataset into a staging folder and swap it into place."""
+    root = Path(root)
+    meta = copy.deepcopy(recordings.meta)
+    validate_meta(meta, f"{root / 'meta.json'} (being written)")
+    for name, split in recordings.splits.items():
+        if name not in meta["splits"]:
+            raise RecordingsError(f"{root / 'meta.json'} (being written): split {name!r} not listed in 'splits'")
+        validate_split(split, len(meta["bodies"]), f"{root / meta['splits'][name]} (being written)")
+    staging = atomic.staging_directory(root)
+    try:
+        for mesh_path, mesh in recordings.meshes.items():
+            atomic.write_text(staging / mesh_path, obj_text(mesh))
+        for name, split in recordings.splits.items():
+            atomic.write_npz(staging / meta["splits"][name], split.arrays())
+        atomic.write_json(staging / "meta.json", meta)
+        atomic.replace_directory(staging, root)
+    except BaseException:
+
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return root

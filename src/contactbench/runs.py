@@ -1,0 +1,153 @@
+"""What generate.py, train.py and evaluate.py do, as functions of a composed Hydra config (tests call these)."""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+from hydra.utils import get_class, instantiate
+from omegaconf import DictConfig
+
+from contactbench import atomic, tracking
+from contactbench.evaluation.scoring import score_model, write_score
+from contactbench.models.base import ContactModel
+from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------- data
+
+
+def generate(cfg: DictConfig) -> Path:
+    """Generate the configured synthetic variant into dataset.path (kept if already there and valid)."""
+    from contactbench.generation.generator import generate_dataset
+
+    path = Path(cfg.dataset.path)
+    if cfg.dataset.scene is None:
+        log.info("%s is a recorded dataset (%s): nothing to generate", cfg.dataset.name, path)
+        return path
+    if (path / "meta.json").exists() and not cfg.get("overwrite", False):
+        try:
+            read_meta(path)
+            log.info("%s exists; keeping it (overwrite=true regenerates)", path)
+            return path
+        except RecordingsError as error:
+            log.warning("%s is not a valid dataset (%s); generating it again", path, error)
+    spec = instantiate(cfg.dataset.scene)
+    return generate_dataset(
+        spec,
+        path,
+        seed=cfg.generation.seed,
+        workers=cfg.generation.workers,
+        record_contacts=cfg.generation.record_contacts,
+        split_sizes=dict(cfg.generation.split_sizes),
+    )
+
+
+def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
+    """Read the configured dataset's splits, generating a synthetic variant first if it is not there yet."""
+    path = Path(cfg.dataset.path)
+    if not (path / "meta.json").exists() and cfg.dataset.scene is not None:
+        log.info("%s not found: generating it", path)
+        generate(cfg)
+    return read_recordings(path, splits)
+
+
+# ---------------------------------------------------------------- models
+
+
+def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
+    kind = cfg.model.kind
+    if kind == "analytical":
+        model = instantiate(cfg.model.contact_model)
+        model.fit(dataset)
+        return model
+    if kind == "lightning":
+        return _fit_lightning(cfg, dataset, output_dir, logger)
+    raise ValueError(f"model.kind must be 'analytical' or 'lightning', got {kind!r}")
+
+
+def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
+    # Objects (the dataset) go to the partial, not through instantiate's config merge.
+    datamodule = instantiate(cfg.model.datamodule, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
+    module = instantiate(cfg.model.module, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
+    checkpoint_dir = output_dir / "checkpoints"
+    callbacks = [instantiate(callback, dirpath=str(checkpoint_dir)) if "ModelCheckpoint" in callback._target_ else instantiate(callback) for callback in cfg.model.get("callbacks", {}).values()]
+    trainer = instantiate(
+        cfg.trainer,
+        **cfg.model.get("trainer", {}),
+        callbacks=callbacks,
+        logger=logger if logger is not None else False,
+        default_root_dir=str(output_dir),
+    )
+    last = checkpoint_dir / "last.ckpt"
+    resume_from = str(last) if cfg.resume and last.exists() else None
+    if resume_from:
+        log.info("resuming from %s", resume_from)
+    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from)
+    best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+    checkpoint = Path(best_path).name if best_path else "last.ckpt"
+    module = _load_module(cfg, dataset, checkpoint_dir / checkpoint)
+    summary = module.fitted_summary() if hasattr(module, "fitted_summary") else {}
+    atomic.write_json(output_dir / "fitted.json", {"model": cfg.model.name, "checkpoint": checkpoint, **summary})
+    return module.to_contact_model()
+
+
+def _load_module(cfg: DictConfig, dataset: Recordings, checkpoint: Path):
+    module_class = get_class(cfg.model.module._target_)
+    return module_class.load_from_checkpoint(str(checkpoint), dataset=dataset, weights_only=True, map_location="cpu")
+
+
+def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> ContactModel:
+    """The model a train run selected, rebuilt from its run folder (checkpoints load with weights_only=True)."""
+    if cfg.model.kind == "analytical":
+        return instantiate(cfg.model.contact_model)
+    record = Path(train_dir) / "fitted.json"
+    if not record.is_file():
+        raise FileNotFoundError(f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget first")
+    checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
+    return _load_module(cfg, dataset, checkpoint).to_contact_model()
+
+
+# ---------------------------------------------------------------- entry points
+
+
+def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, split: str, out_dir: Path, logger) -> dict:
+    score = score_model(model, dataset, split, cfg.context_frames, dataset_name=cfg.dataset.name, variant=cfg.dataset.variant)
+    document = write_score(score, out_dir)
+    tracking.log_scores(logger, score.summary(), split)
+    return document
+
+
+def train(cfg: DictConfig, output_dir: Path) -> float:
+    """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
+    output_dir = Path(output_dir)
+    splits = ["train", "val"] + (["test"] if cfg.test else [])
+    dataset = load_dataset(cfg, splits)
+    logger = tracking.make_logger(cfg, output_dir)
+    status = "failed"
+    try:
+        model = _fit(cfg, dataset, output_dir, logger)
+        results = {"val": _score_and_write(cfg, model, dataset, "val", output_dir / "val", logger)}
+        if cfg.test:
+            results["test"] = _score_and_write(cfg, model, dataset, "test", output_dir / "test", logger)
+        status = "success"
+    finally:
+        tracking.close_logger(logger, status)
+    return results["val"]["pos_err"]
+
+
+def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
+    """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
+    output_dir = Path(output_dir)
+    dataset = load_dataset(cfg, [cfg.split])
+    logger = tracking.make_logger(cfg, output_dir)
+    status = "failed"
+    try:
+        model = load_fitted(cfg, dataset, Path(cfg.train_dir))
+        document = _score_and_write(cfg, model, dataset, cfg.split, output_dir, logger)
+        status = "success"
+    finally:
+        tracking.close_logger(logger, status)
+    return document

@@ -1,0 +1,174 @@
+"""Build a MuJoCo model of any recordings scene (convex meshes, free bodies, floor) and convert its state.
+
+Conventions
+-----------
+* Body frame = the recordings' mesh frame. The mesh geom sits in the body at whatever offset MuJoCo's mesh
+  compiler gives it (it recentres meshes on their own centroid and principal axes and compensates with the geom's
+  pos/quat), the inertia is explicit (`<inertial pos=com fullinertia=...>`), so a free joint's
+  qpos = (x, y, z, qw, qx, qy, qz) of the body is exactly a recordings pose.
+* MuJoCo free-joint qvel = (linear velocity of the body-frame origin, world frame; angular velocity, BODY frame).
+  Recordings velocities are both world-frame; `pack_state` / `unpack_state` convert at this boundary.
+* Collision uses each mesh's convex hull (MuJoCo collides mesh geoms as convex hulls).
+* Integrator: MuJoCo's Euler, which is semi-implicit (v += h a, then x += h v_new), the convention the recorded
+  velocities follow (x_t - x_{t-1} = dt v_t); no joint damping, timestep = dt / substeps.
+
+How contact parameters reach contacts
+-------------------------------------
+MuJoCo combines two geoms' parameters per contact: friction is the element-wise maximum, condim the maximum, and
+solref/solimp are mixed with solmix weights (or, for the direct "-stiffness -damping" format, taken element-wise
+minimum), unless geom priorities differ (then the higher-priority geom's values are copied, friction included).
+Neither mixing nor priority states "the floor's solref governs floor contacts while friction stays the max of the
+two" directly, so the floor takes no part in MuJoCo's dynamic collision filtering (contype = conaffinity = 0) and
+every (floor, body k) contact comes from an explicit `<contact><pair>` whose values are written here:
+friction = max(object_friction[k], floor_friction) (MuJoCo's own rule, applied by us), solref = the floor's,
+condim and solimp as for geom contacts. The floor geom carries the same values so that model.geom_* shows them,
+though only the pairs act. Body-body contacts stay dynamic: MuJoCo takes the max of the two bodies' friction and its
+default solref/solimp (one contact point per convex pair: MuJoCo's `multiccd` stays off, as in its defaults).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from xml.sax.saxutils import quoteattr
+
+import mujoco
+import numpy as np
+
+from contactbench import rotations
+from contactbench.recordings import Recordings
+
+MUJOCO_DEFAULT_SOLREF = (0.02, 1.0)  # time constant (s), damping ratio: MuJoCo's default for every contact
+MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
+
+
+@dataclass(frozen=True)
+class ContactParameters:
+    """The contact parameters system identification tunes (the paper's Table 2c), plus optional spin/roll friction."""
+
+    object_friction: tuple[float, ...]  # sliding friction coefficient per body, in the recordings' body order
+    floor_friction: float
+    floor_stiffness: float | None  # MuJoCo direct solref "-stiffness -damping"; None (both) = default solref
+    floor_damping: float | None
+    torsional_friction: float = 0.0  # non-zero turns on condim 4 (all contacts)
+    rolling_friction: float = 0.0  # non-zero turns on condim 6 (all contacts)
+
+    def __post_init__(self):
+        # Plain floats keep the instance hashable (it keys model caches) whatever the caller passed.
+        for item in fields(self):
+            value = getattr(self, item.name)
+            if item.name == "object_friction":
+                value = tuple(float(x) for x in np.ravel(value))
+            elif value is not None:
+                value = float(value)
+            object.__setattr__(self, item.name, value)
+        if (self.floor_stiffness is None) != (self.floor_damping is None):
+            raise ValueError("floor_stiffness and floor_damping are given together or not at all")
+        frictions = self.object_friction + (self.floor_friction, self.torsional_friction, self.rolling_friction)
+        if not all(np.isfinite(frictions)) or min(frictions) < 0:
+            raise ValueError(f"friction coefficients must be finite and non-negative, got {self}")
+        if self.floor_stiffness is not None and not (self.floor_stiffness > 0 and self.floor_damping >= 0):
+            raise ValueError(f"floor stiffness must be positive and damping non-negative, got {self}")
+
+    @classmethod
+    def mujoco_default(cls, n_bodies: int) -> "ContactParameters":
+        """MuJoCo's own defaults (friction 1, solref 0.02 1, default solimp, condim 3): the untuned simulation.
+
+        MuJoCo's default geom friction is "1 0.005 0.0001"; with condim 3 only the first entry acts.
+        """
+        return cls(object_friction=(1.0,) * n_bodies, floor_friction=1.0, floor_stiffness=None, floor_damping=None)
+
+    @property
+    def condim(self) -> int:
+        if self.rolling_friction > 0:
+            return 6
+        return 4 if self.torsional_friction > 0 else 3
+
+    @property
+    def floor_solref(self) -> tuple[float, float]:
+        if self.floor_stiffness is None:
+            return MUJOCO_DEFAULT_SOLREF
+        return (-self.floor_stiffness, -self.floor_damping)
+
+
+def _numbers(values) -> str:
+    return " ".join(repr(float(x)) for x in np.ravel(values))
+
+
+def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1) -> str:
+    """The MJCF text of the dataset's scene with the given contact parameters (see the module docstring)."""
+    if len(params.object_friction) != dataset.n_bodies:
+        raise ValueError(f"{len(params.object_friction)} object frictions for a scene of {dataset.n_bodies} bodies")
+    if substeps < 1:
+        raise ValueError(f"substeps must be a positive integer, got {substeps}")
+    mesh_names = {path: f"mesh{i}" for i, path in enumerate(dict.fromkeys(b.mesh for b in dataset.bodies))}
+    spin_roll = (params.torsional_friction, params.rolling_friction)
+    assets = [
+        f'<mesh name="{name}" vertex="{_numbers(dataset.meshes[path].vertices)}" '
+        f'face="{" ".join(str(int(i)) for i in dataset.meshes[path].faces.ravel())}"/>'
+        for path, name in mesh_names.items()
+    ]
+    bodies, pairs = [], []
+    for k, body in enumerate(dataset.bodies):
+        com, inertia = dataset.mass_properties(k)
+        full_inertia = (inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2])
+        bodies.append(
+            f'<body name="body{k}"><freejoint name="joint{k}"/>'
+            f'<inertial pos="{_numbers(com)}" mass="{body.mass!r}" fullinertia="{_numbers(full_inertia)}"/>'
+            f'<geom name="geom{k}" type="mesh" mesh="{mesh_names[body.mesh]}" condim="{params.condim}" '
+            f'friction="{_numbers((params.object_friction[k],) + spin_roll)}"/></body>'
+        )
+        sliding = max(params.object_friction[k], params.floor_friction)
+        pairs.append(
+            f'<pair geom1="floor" geom2="geom{k}" condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
+            f'solimp="{_numbers(MUJOCO_DEFAULT_SOLIMP)}" '
+            f'friction="{_numbers((sliding, sliding, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
+        )
+    return "\n".join(
+        [
+            f"<mujoco model={quoteattr(dataset.name)}>",
+            '<compiler angle="radian" inertiafromgeom="false"/>',
+            f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(dataset.gravity)}" integrator="Euler"/>',
+            "<asset>", *assets, "</asset>",
+            "<worldbody>",
+            f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z!r}" contype="0" conaffinity="0" '
+            f'condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
+            f'friction="{_numbers((params.floor_friction,) + spin_roll)}"/>',
+            *bodies,
+            "</worldbody>",
+            "<contact>", *pairs, "</contact>",
+            "</mujoco>",
+        ]
+    )
+
+
+def build_model(dataset: Recordings, params: ContactParameters, substeps: int = 1) -> mujoco.MjModel:
+    """A compiled MuJoCo model of the scene: one free body per recordings body, timestep dt / substeps."""
+    return mujoco.MjModel.from_xml_string(scene_xml(dataset, params, substeps))
+
+
+def pack_state(poses: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Recordings poses [..., K, 7] and world velocities [..., K, 6] -> MuJoCo qpos [..., 7K], qvel [..., 6K]."""
+    qpos = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
+    qvel = body_frame_velocities(qpos, velocities)
+    return qpos.reshape(*poses.shape[:-2], -1), qvel.reshape(*velocities.shape[:-2], -1)
+
+
+def unpack_state(qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo qpos [..., 7K], qvel [..., 6K] -> recordings poses [..., K, 7] and world velocities [..., K, 6]."""
+    poses = qpos.reshape(*qpos.shape[:-1], -1, 7)
+    return poses, world_velocities(poses, qvel.reshape(*qvel.shape[:-1], -1, 6))
+
+
+def body_frame_velocities(poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+    """World [v, w] [..., K, 6] -> free-joint velocities [..., K, 6]: v stays world-frame, w turns into the body frame."""
+    qvel = np.empty(np.broadcast_shapes(poses.shape[:-1], velocities.shape[:-1]) + (6,))
+    qvel[..., :3] = velocities[..., :3]
+    qvel[..., 3:] = rotations.rotate(rotations.conjugate(poses[..., 3:]), velocities[..., 3:])
+    return qvel
+
+
+def world_velocities(poses: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """Free-joint velocities [..., K, 6] (body-frame angular part) -> world [v, w] [..., K, 6]."""
+    velocities = np.empty(np.broadcast_shapes(poses.shape[:-1], qvel.shape[:-1]) + (6,))
+    velocities[..., :3] = qvel[..., :3]
+    velocities[..., 3:] = rotations.rotate(poses[..., 3:], qvel[..., 3:])
+    return velocities

@@ -1,0 +1,200 @@
+"""Batched MuJoCo rollouts of a recordings scene: many parameter sets x many trajectories in one native call.
+
+State vectors are MuJoCo's `mjSTATE_FULLPHYSICS` layout, nstate = mj_stateSize(model, mjSTATE_FULLPHYSICS):
+[time, qpos (7 per body: x y z qw qx qy qz), qvel (6 per body: world linear, body angular)]; the scenes have no
+actuators or plugins, so act and plugin state are empty (checked).
+"""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Sequence
+
+import mujoco
+import mujoco.rollout
+import numpy as np
+
+from contactbench import rotations
+from contactbench.models.base import Context
+from contactbench.recordings import Recordings
+from contactbench.sim.mujoco_scene import (
+    ContactParameters,
+    body_frame_velocities,
+    build_model,
+    pack_state,
+    world_velocities,
+)
+
+FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
+# MuJoCo answers a NaN/huge state by resetting the data, which zeroes its time; starting every rollout at a
+# non-zero time makes such a reset visible in the returned states.
+START_TIME = 1.0
+# Contacts and semi-implicit Euler only dissipate, so an item whose mechanical energy climbs above
+# ENERGY_GAIN x its initial energy (+ ENERGY_SLACK per kg, for soft-contact springs) has blown up.
+ENERGY_GAIN = 2.0
+ENERGY_SLACK = 1e-2  # J/kg
+MODEL_CACHE_SIZE = 512
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the platform reports one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def state_offset(model: mujoco.MjModel, component: mujoco.mjtState) -> int:
+    """Where `component` starts inside a full-physics state (mj_getState writes components in bit order)."""
+    return mujoco.mj_stateSize(model, int(FULL_PHYSICS) & (int(component) - 1))
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Simulated frames for B parameter sets x N initial states, and which items blew up."""
+
+    poses: np.ndarray  # [B, N, T, K, 7] recordings poses; NaN from the frame where MuJoCo diverged and reset
+    qvel: np.ndarray  # [B, N, T, K, 6] MuJoCo free-joint velocities: world linear (mesh-frame origin), BODY angular
+    unstable: np.ndarray  # [B, N] diverged (MuJoCo reset), gained energy (see ENERGY_GAIN) or fell through the floor
+
+    @cached_property
+    def velocities(self) -> np.ndarray:
+        """[B, N, T, K, 6] world-frame linear and angular velocity (the recordings convention), made on first use."""
+        return world_velocities(self.poses, self.qvel)
+
+
+class MujocoRollouts:
+    """Rolls a dataset's scene out in MuJoCo for any number of contact parameter sets and initial states."""
+
+    def __init__(self, dataset: Recordings, nthread: int | None = None, substeps: int = 1):
+        self.dataset = dataset
+        self.substeps = int(substeps)
+        self.nthread = int(nthread or available_cores())
+        self._models: OrderedDict[ContactParameters, mujoco.MjModel] = OrderedDict()
+        reference = self.model(ContactParameters.mujoco_default(dataset.n_bodies))
+        self.timestep = reference.opt.timestep
+        self.nstate = mujoco.mj_stateSize(reference, FULL_PHYSICS)
+        qpos_at = state_offset(reference, mujoco.mjtState.mjSTATE_QPOS)
+        qvel_at = state_offset(reference, mujoco.mjtState.mjSTATE_QVEL)
+        self._qpos = slice(qpos_at, qpos_at + reference.nq)
+        self._qvel = slice(qvel_at, qvel_at + reference.nv)
+        if self.nstate != 1 + reference.nq + reference.nv:
+            raise ValueError(f"scene has {self.nstate - 1 - reference.nq - reference.nv} unexpected state entries (act/plugin)")
+        self._data = [mujoco.MjData(reference) for _ in range(self.nthread)]
+        # A body whose frame origin is lower than this under the floor has no vertex above it.
+        self._sunk_depth = np.array(
+            [np.linalg.norm(dataset.body_mesh(k).vertices, axis=1).max() for k in range(dataset.n_bodies)]
+        )
+
+    def renew_data(self) -> None:
+        """Fresh MjData for every thread (after a timed-out call, whose native threads may still hold the old ones)."""
+        self._data = [mujoco.MjData(self._data[0].model) for _ in range(self.nthread)]
+
+    def model(self, params: ContactParameters) -> mujoco.MjModel:
+        """The compiled scene for `params`, cached (least recently used go first) for repeated parameter sets."""
+        if params in self._models:
+            self._models.move_to_end(params)
+            return self._models[params]
+        model = build_model(self.dataset, params, self.substeps)
+        self._models[params] = model
+        if len(self._models) > MODEL_CACHE_SIZE:
+            self._models.popitem(last=False)
+        return model
+
+    def initial_states(self, poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+        """Full-physics states [N, nstate] from recordings poses [N, K, 7] and world velocities [N, K, 6]."""
+        qpos, qvel = pack_state(np.asarray(poses, dtype=np.float64), np.asarray(velocities, dtype=np.float64))
+        states = np.zeros((len(qpos), self.nstate))
+        states[:, 0] = START_TIME
+        states[:, self._qpos] = qpos
+        states[:, self._qvel] = qvel
+        return states
+
+    def simulate(
+        self,
+        params: ContactParameters | Sequence[ContactParameters],
+        poses0: np.ndarray,
+        velocities0: np.ndarray,
+        n_steps: int,
+    ) -> SimulationResult:
+        """Frames 1..n_steps (dt apart) after poses0 [N, K, 7] / velocities0 [N, K, 6], for B parameter sets.
+
+        All B x N rollouts go to MuJoCo in one call, spread over the threads; a single parameter set gives B = 1.
+        """
+        parameter_sets = [params] if isinstance(params, ContactParameters) else list(params)
+        models = [self.model(p) for p in parameter_sets]
+        initial = self.initial_states(poses0, velocities0)
+        n_batch = len(models) * len(initial)
+        n_substeps = n_steps * self.substeps
+        states = np.empty((n_batch, n_substeps, self.nstate))
+        if n_batch and n_substeps:
+            mujoco.rollout.rollout(
+                [model for model in models for _ in range(len(initial))],
+                self._data,
+                np.tile(initial, (len(models), 1)),
+                nstep=n_substeps,
+                state=states,
+                persistent_pool=True,
+            )
+        frames = states[:, self.substeps - 1 :: self.substeps]
+        if self.substeps > 1:  # keep the returned frames, not every substep, alive
+            frames = np.ascontiguousarray(frames)
+        frames = frames.reshape(len(models), len(initial), n_steps, self.nstate)
+        # Views into the state buffer: copying them out measured at 10-25% of the stepping time.
+        poses = frames[..., self._qpos].reshape(*frames.shape[:3], self.dataset.n_bodies, 7)
+        qvel = frames[..., self._qvel].reshape(*frames.shape[:3], self.dataset.n_bodies, 6)
+        expected_time = START_TIME + self.timestep * self.substeps * np.arange(1, n_steps + 1)
+        diverged = np.maximum.accumulate(np.abs(frames[..., 0] - expected_time) > self.timestep / 2, axis=-1)
+        poses[diverged] = np.nan
+        qvel[diverged] = np.nan
+        with np.errstate(invalid="ignore", over="ignore"):
+            energy = body_frame_energy(self.dataset, poses, qvel)
+            # MuJoCo resets on NaN or |x| > 1e10, so non-finite energy only flags the frames set to NaN above.
+            gained = ~(energy <= self._allowed_energy(poses0, velocities0)[:, None])
+            sunk = (poses[..., 2] < self.dataset.floor_z - self._sunk_depth).any(axis=-1)
+        return SimulationResult(poses, qvel, (diverged | gained | sunk).any(axis=-1))
+
+    def _allowed_energy(self, poses0: np.ndarray, velocities0: np.ndarray) -> np.ndarray:
+        initial = mechanical_energy(self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64))
+        return ENERGY_GAIN * initial + ENERGY_SLACK * sum(body.mass for body in self.dataset.bodies)
+
+    def rollout_context(self, context: Context, params: ContactParameters | Sequence[ContactParameters]) -> SimulationResult:
+        """The shared protocol: start from the last context frame, return context + predictions [B, N, horizon, ...]."""
+        result = self.simulate(
+            params, context.poses[:, -1], context.velocities[:, -1], context.horizon - context.n_context
+        )
+        leading = result.poses.shape[:1]
+        context_qvel = body_frame_velocities(context.poses, context.velocities)
+        return SimulationResult(
+            np.concatenate([np.broadcast_to(context.poses, leading + context.poses.shape), result.poses], axis=2),
+            np.concatenate([np.broadcast_to(context_qvel, leading + context_qvel.shape), result.qvel], axis=2),
+            result.unstable,
+        )
+
+
+def mechanical_energy(dataset: Recordings, poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+    """Kinetic + gravitational energy (J, zero at the floor) of the scene at poses [..., K, 7], velocities [..., K, 6]."""
+    return body_frame_energy(dataset, poses, body_frame_velocities(poses, velocities))
+
+
+def body_frame_energy(dataset: Recordings, poses: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+    """mechanical_energy from MuJoCo's free-joint velocities qvel [..., K, 6] (angular part in the body frame)."""
+    masses = np.array([body.mass for body in dataset.bodies])
+    properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
+    com = np.stack([c for c, _ in properties])
+    inertia = np.stack([i for _, i in properties])
+    position, quaternion = poses[..., :3], poses[..., 3:]
+    linear, angular = qvel[..., :3], qvel[..., 3:]
+    if np.any(com):  # meshes written about their centre of mass need no rotation here
+        linear = linear + rotations.rotate(quaternion, np.cross(angular, com))
+        position = position + rotations.rotate(quaternion, com)
+    translational = np.einsum("k,...ki,...ki->...", masses, linear, linear)
+    rotational = np.einsum("...ki,kij,...kj->...", angular, inertia, angular)
+    height = (position - np.array([0.0, 0.0, dataset.floor_z])) @ dataset.gravity
+    return 0.5 * (translational + rotational) - np.einsum("k,...k->...", masses, height)
+
+
+def rollout_context(
+    dataset: Recordings, context: Context, params: ContactParameters, substeps: int = 1, nthread: int | None = None
+) -> np.ndarray:
+    """Poses [N, context.horizon, K, 7]: the context frames, then MuJoCo's prediction from the last of them."""
+    return MujocoRollouts(dataset, nthread, substeps).rollout_context(context, params).poses[0]

@@ -1,0 +1,19 @@
+"""Fit a contact model on a dataset's train split, select on val: python train.py model=gnn dataset=multicubes bodies=3."""
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from contactbench import runs
+from contactbench.cli import guarded
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+@guarded
+def main(cfg: DictConfig) -> float:
+    return runs.train(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":
+    main()
