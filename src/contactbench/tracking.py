@@ -18,7 +18,8 @@ def make_logger(cfg: DictConfig, output_dir: Path) -> Logger | None:
     # Each back-end names its output folder differently; all of them live inside the run folder.
     location = {"save_dir": str(output_dir)}
     if target.endswith("MLFlowLogger"):
-        location = {}
+        location = {}  # one store for all runs (paths.log_dir/mlflow.db), so the dashboard compares them
+        Path(cfg.paths.log_dir).mkdir(parents=True, exist_ok=True)
     logger = instantiate(cfg.logger, **location)
     flat = {key: value for key, value in _flatten(OmegaConf.to_container(cfg, resolve=True)).items() if not key.startswith("hydra")}
     logger.log_hyperparams(flat)

@@ -1,0 +1,39 @@
+"""Every logger back-end records a run's config and scores, offline, without asking for anything."""
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+
+from conftest import falling_cubes
+from contactbench import runs
+from contactbench.recordings import write_recordings
+from test_pipeline import compose_config
+
+
+@pytest.fixture
+def recorded_dataset(tmp_path):
+    return write_recordings(tmp_path / "falling", falling_cubes(n_trajectories=3, n_frames=20, n_bodies=2))
+
+
+@pytest.mark.parametrize("logger", ["csv", "tensorboard", "mlflow", "wandb"])
+def test_logger_records_scores(tmp_path, recorded_dataset, logger, monkeypatch):
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path))
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    cfg = compose_config("evaluate", ["dataset=recordings", f"recordings={recorded_dataset}", f"logger={logger}", "split=val"], tmp_path)
+    document = runs.evaluate(cfg, tmp_path / "run")
+    assert document["dataset"] == "recordings" and document["variant"] == "falling"
+    assert document["interbody_penetration_m"] is not None and document["pairwise_collisions"] is not None
+    if logger == "csv":
+        text = (tmp_path / "run" / "csv" / "metrics.csv").read_text()
+        assert "val/pos_err" in text
+    elif logger == "tensorboard":
+        assert list((tmp_path / "run" / "tensorboard").glob("events.out.tfevents.*"))
+    elif logger == "mlflow":
+        with sqlite3.connect(tmp_path / "outputs" / "mlflow.db") as connection:
+            keys = {row[0] for row in connection.execute("select key from metrics")}
+        assert "val/pos_err" in keys
+    else:
+        assert cfg.logger.offline is True
+        assert list(tmp_path.rglob("offline-run-*"))
