@@ -28,7 +28,7 @@ def compose_config(name: str, overrides: list[str], tmp_path: Path):
 
 
 def run_entry_point(script: str, overrides: list[str], tmp_path: Path, timeout: float = 300, **kwargs):
-    command = [sys.executable, str(REPO_ROOT / script), f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data", *overrides]
+    command = [sys.executable, str(REPO_ROOT / script), *overrides, f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data"]
     environment = {**os.environ, "WANDB_MODE": "disabled"}
     return subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=environment, cwd=tmp_path, **kwargs)
 
@@ -110,3 +110,13 @@ def test_bad_dataset_path_is_one_clear_error(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [f"error: {tmp_path}/nowhere: not a dataset folder (expected a folder with meta.json)"]
     assert "Traceback" not in result.stdout + result.stderr
+
+
+def test_multirun_names_job_folders_after_their_overrides(tmp_path):
+    result = run_entry_point(
+        "evaluate.py", ["-m", "model=mujoco_default,mujoco_fixed", "variant=contactnets_cube", "split=val", f"hydra.sweep.dir={tmp_path}/sweep"], tmp_path, timeout=300
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    for model in ("mujoco_default", "mujoco_fixed"):
+        document = json.loads((tmp_path / "sweep" / f"model={model},split=val,variant=contactnets_cube" / "metrics.json").read_text())
+        assert document["model"] == model and document["n_trajectories"] == 165

@@ -38,6 +38,7 @@ def generate(cfg: DictConfig) -> Path:
     return generate_dataset(
         spec,
         path,
+        variant=cfg.dataset.variant,
         seed=cfg.generation.seed,
         workers=cfg.generation.workers,
         record_contacts=cfg.generation.record_contacts,

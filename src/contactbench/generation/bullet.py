@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import itertools
+from types import MappingProxyType
 
 import numpy as np
 import pybullet
@@ -18,13 +19,13 @@ _IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
 # PyBullet defaults replaced on purpose for every object: 0.04 linear and angular air drag nobody asked for, and
 # a 1 mm collision margin that would keep every object hovering 1 mm above the floor. (The AABB-box inertia
 # default is replaced too, by the mesh's own, in _build.)
-BODY_DYNAMICS_OVERRIDES = {
+BODY_DYNAMICS_OVERRIDES = MappingProxyType({
     "rollingFriction": 0.0,
     "spinningFriction": 0.0,
     "linearDamping": 0.0,
     "angularDamping": 0.0,
     "collisionMargin": 0.0,
-}
+})
 
 
 class BulletScene:
@@ -134,10 +135,12 @@ class BulletScene:
         # Engine calls dominate the cost of a toss: keep the per-step work to the calls themselves and
         # convert the collected tuples to arrays once at the end.
         states = [read_pose(body, client) + read_velocity(body, client) for body in bodies]
+        record_state = states.append
         contact_log: list[tuple[int, tuple]] = []
         for t in range(1, frames):
             pybullet.stepSimulation(client)
-            states.extend(read_pose(body, client) + read_velocity(body, client) for body in bodies)
+            for body in bodies:
+                record_state(read_pose(body, client) + read_velocity(body, client))
             if record_contacts:
                 contact_log.extend((t, point) for point in pybullet.getContactPoints(physicsClientId=client))
         flat = np.fromiter(itertools.chain.from_iterable(itertools.chain.from_iterable(states)), dtype=np.float64)

@@ -1,12 +1,14 @@
 """Benchmark dataset generation: seed, sample and simulate every toss of a scene variant, write the recordings."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import importlib.metadata
 import json
 import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -86,28 +88,40 @@ def _run_in_worker(toss: int) -> tuple:
     return _worker_runner(toss)
 
 
+def worker_context() -> multiprocessing.context.BaseContext:
+    """How worker processes start: never by forking the caller, which may hold threads (torch, Hydra launchers).
+
+    A fork server is a clean process that imports the generator (and, like "spawn", the caller's main script)
+    once; workers fork from it in milliseconds, so every later variant in the same run starts its pool almost
+    for free. Platforms without one get "spawn".
+    """
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["__main__", "contactbench.generation.generator"])
+    return context
+
+
 def _simulate_all(job: _Job, workers: int, progress: bool, description: str) -> list[tuple]:
+    """Every toss's simulate() result, in toss order."""
     total = sum(size for _, size in job.split_sizes)
-    with tqdm(total=total, desc=description, unit="toss", disable=not progress) as bar:
+    with contextlib.ExitStack() as stack:
         if workers == 1:
             runner = _TossRunner(job)
-            try:
-                results = []
-                for toss in range(total):
-                    results.append(runner(toss))
-                    bar.update()
-                return results
-            finally:
-                runner.scene.close()
-        # "spawn" starts clean interpreters: forking a parent that holds threads (torch, Hydra launchers) is unsafe.
-        context = multiprocessing.get_context("spawn")
-        chunk = max(1, min(16, total // (8 * workers)))
-        with context.Pool(workers, initializer=_start_worker, initargs=(job,)) as pool:
-            results = []
-            for result in pool.imap(_run_in_worker, range(total), chunksize=chunk):
-                results.append(result)
-                bar.update()
-            return results
+            stack.callback(runner.scene.close)
+            outcomes = map(runner, range(total))
+        else:
+            # An executor, unlike multiprocessing.Pool, fails loudly instead of restarting workers that cannot start.
+            pool = stack.enter_context(
+                ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_start_worker, initargs=(job,))
+            )
+            outcomes = pool.map(_run_in_worker, range(total), chunksize=max(1, min(16, total // (8 * workers))))
+        bar = stack.enter_context(tqdm(total=total, desc=description, unit="toss", disable=not progress))
+        results = []
+        for outcome in outcomes:
+            results.append(outcome)
+            bar.update()
+        return results
 
 
 def _stack_split(results: list[tuple], record_contacts: bool, frames: int) -> Split:
