@@ -5,8 +5,13 @@ BIN = $(VENV)/bin
 
 .PHONY: main test benchmarks
 
+# The embedded default: one generated variant and the real cube, every model at budget=quick, scored on val and
+# test, then one results table.
+MAIN_MODELS = mujoco_default,mujoco_fixed,sysid
 main: $(VENV)/.installed
-	$(BIN)/python -m contactbench.main
+	$(BIN)/python generate.py variant=frictioncubes_0.5
+	$(BIN)/python train.py -m model=$(MAIN_MODELS) variant=frictioncubes_0.5,contactnets_cube budget=quick test=true hydra.sweep.dir=outputs/main
+	$(BIN)/python -m contactbench.evaluation.report outputs/main
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q

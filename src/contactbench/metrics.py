@@ -59,15 +59,17 @@ def rotation_error(true_poses, pred_poses) -> np.ndarray:
     return rotations.angle_between(true_poses[..., 3:], pred_poses[..., 3:])
 
 
-def configuration_error(true_poses, pred_poses, widths) -> np.ndarray:
-    """Eq. (1), the SysID objective: Σ_k (2/w_k)‖x̄_k − x̂_k‖² + angle(R̄_k, R̂_k)², per frame; returns [...].
+def configuration_error(true_poses, pred_poses, widths, position_exponent: int = 1) -> np.ndarray:
+    """Eq. (1), the SysID objective: Σ_k (2/w_k)^p ‖x̄_k − x̂_k‖² + angle(R̄_k, R̂_k)², per frame; returns [...].
 
-    Leading axes broadcast, e.g. pred [B, N, T, K, 7] against true [N, T, K, 7] gives [B, N, T].
+    p = 1 is the paper's equation as printed; p = 2 makes the position term ((‖x̄ − x̂‖ / half-width)²)
+    dimensionless like the angle term. Leading axes broadcast, e.g. pred [B, N, T, K, 7] against true
+    [N, T, K, 7] gives [B, N, T].
     """
     true_poses, pred_poses, widths = np.asarray(true_poses, float), np.asarray(pred_poses, float), np.asarray(widths, float)
     _check_pose_pair(true_poses, pred_poses, widths)
     offset = true_poses[..., :3] - pred_poses[..., :3]
-    positional = np.einsum("...i,...i->...", offset, offset) @ (2.0 / widths)
+    positional = np.einsum("...i,...i->...", offset, offset) @ (2.0 / widths) ** position_exponent
     true_q, pred_q = true_poses[..., 3:], pred_poses[..., 3:]
     # angle = 2 atan2(|vector part of q̄* q̂|, |q̄·q̂|), that norm from Lagrange's identity |q̄|²|q̂|² − (q̄·q̂)²: five times
     # cheaper than the quaternion product, and its rounding (≈1e-8 rad near zero) is immaterial to a squared error.

@@ -52,6 +52,7 @@ class SysIDModule(pl.LightningModule):
         seed: int = 0,
         unstable_penalty: float = 1e3,
         timeout_s: float = 120.0,
+        position_exponent: int = 1,
         nthread: int | None = None,
         substeps: int = 1,
     ):
@@ -116,7 +117,7 @@ class NevergradSearch(pl.Callback):
     def on_fit_start(self, trainer, module: SysIDModule) -> None:
         h = module.hparams
         rollouts = MujocoRollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
-        penalties = {"unstable_penalty": h.unstable_penalty, "timeout_s": h.timeout_s}
+        penalties = {"unstable_penalty": h.unstable_penalty, "timeout_s": h.timeout_s, "position_exponent": h.position_exponent}
         self.train_objective = ConfigurationObjective(module.dataset, "train", h.context_frames, rollouts, **penalties)
         self.val_objective = ConfigurationObjective(module.dataset, "val", h.context_frames, rollouts, **penalties)
         log.info(

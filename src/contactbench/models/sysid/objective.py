@@ -33,7 +33,7 @@ class ConfigurationObjective:
     scores `unstable_penalty` (finite, so the optimiser carries on and learns to avoid the region).
     """
 
-    def __init__(self, dataset: Recordings, split: str, context_frames: int, rollouts: MujocoRollouts, *, unstable_penalty: float = 1e3, timeout_s: float = 120.0):
+    def __init__(self, dataset: Recordings, split: str, context_frames: int, rollouts: MujocoRollouts, *, unstable_penalty: float = 1e3, timeout_s: float = 120.0, position_exponent: int = 1):
         recorded = dataset.split(split)
         self.context = make_context(recorded, dataset.dt, context_frames)
         self.truth = recorded.poses
@@ -41,6 +41,7 @@ class ConfigurationObjective:
         self.rollouts = rollouts
         self.unstable_penalty = float(unstable_penalty)
         self.timeout_s = float(timeout_s)
+        self.position_exponent = int(position_exponent)
         self._watchdog = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="sysid-rollout")
 
     @property
@@ -63,7 +64,7 @@ class ConfigurationObjective:
         scored = np.arange(horizon)[None, :] >= context.n_context
         mask = scored & (np.arange(horizon)[None, :] < context.lengths[:, None])  # [n, T]
         with np.errstate(invalid="ignore", over="ignore"):
-            errors = configuration_error(self.truth[indices, :horizon], result.poses, self.widths)  # [B, n, T]
+            errors = configuration_error(self.truth[indices, :horizon], result.poses, self.widths, self.position_exponent)  # [B, n, T]
             per_trajectory = np.where(mask, errors, 0.0).sum(axis=-1) / mask.sum(axis=-1)
             losses = per_trajectory.mean(axis=-1)
         unstable = result.unstable.any(axis=-1) | ~np.isfinite(losses)
