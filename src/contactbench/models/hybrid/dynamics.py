@@ -13,11 +13,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from contactbench import rotations
+from contactbench.errors import ContactbenchError
 from contactbench.kinematics import estimate_velocities
 from contactbench.recordings import Recordings
 
 
-class SingleBodyError(ValueError):
+class SingleBodyError(ContactbenchError):
     """The hybrid model was handed a dataset with more than one body."""
 
 
