@@ -32,12 +32,12 @@ DT = 0.01
 G = 9.81
 
 
-def cube_recordings(splits: dict[str, Split] | None = None, dt: float = DT, extras_note: str = "") -> Recordings:
+def cube_recordings(splits: dict[str, Split] | None = None) -> Recordings:
     meta = {
         "format": FORMAT,
         "version": VERSION,
-        "name": f"hybrid-test{extras_note}",
-        "dt": dt,
+        "name": "hybrid-test",
+        "dt": DT,
         "gravity": [0.0, 0.0, -G],
         "floor_z": 0.0,
         "bodies": [{"name": "cube", "mesh": "meshes/cube.obj", "mass": MASS}],

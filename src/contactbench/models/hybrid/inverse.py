@@ -17,9 +17,10 @@ p (that is, mu) to best explain L in the kinetic-energy metric of the angular im
     minimise (L - p x J - tau n)^T I^-1 (L - p x J - tau n) over mu on the simplex and tau,
 a projection of a point onto a convex polygon in 2-D once tau is eliminated. Then the normal wrench is
 (J_z n, J_z p x n) and the friction wrench the remainder (J_t, p x J_t + tau n + what no contact explains). For a
-sliding, resting or single-vertex contact this is exactly what a simulator with point contacts at the vertices does,
-and the forward step (friction first, then the frictionless LCP) reproduces the transition from it: e.g. a cube
-sliding on a face gets its centre of pressure shifted forwards by mu_friction * h, as in the hand result.
+sliding, resting or single-vertex contact this is exactly what a simulator with point contacts at the vertices does
+(PyBullet's recorded forces agree to 1e-3, see `compare_with_bullet_contacts`), and the forward step (friction first,
+then the frictionless LCP) gives the transition back wherever the data's contacts end the step as the LCP's do
+(e.g. a cube sliding on a face: its centre of pressure moves forwards by mu_friction * h, as in the hand result).
 Candidates are the vertices that `lcp.contact_candidates` names under gravity alone, as the forward step does; a
 transition with no candidate or no upward impulse gets no normal impulse and all its impulse counts as friction.
 """
