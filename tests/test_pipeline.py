@@ -87,7 +87,7 @@ def test_sysid_killed_run_resumes_instead_of_starting_over(tmp_path):
     command = [sys.executable, str(REPO_ROOT / "train.py"), f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data", *overrides]
     environment = {**os.environ, "WANDB_MODE": "disabled"}
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=environment, cwd=tmp_path)
-    checkpoint = next(iter([tmp_path / "outputs" / "train" / "sysid" / "contactnets_cube" / "real" / "budget=smoke,seed=0" / "checkpoints" / "last.ckpt"]))
+    checkpoint = tmp_path / "outputs" / "train" / "sysid" / "contactnets_cube" / "real" / "budget=smoke,seed=0" / "checkpoints" / "last.ckpt"
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline and process.poll() is None:
         if checkpoint.exists() and torch.load(checkpoint, weights_only=True)["callbacks"]["NevergradSearch"]["generation"] >= 3:

@@ -5,6 +5,7 @@ import json
 import logging
 from pathlib import Path
 
+import pytorch_lightning as pl
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig
 
@@ -74,7 +75,7 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     datamodule = instantiate(cfg.model.datamodule, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
     module = instantiate(cfg.model.module, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
     checkpoint_dir = output_dir / "checkpoints"
-    callbacks = [instantiate(callback, dirpath=str(checkpoint_dir)) if "ModelCheckpoint" in callback._target_ else instantiate(callback) for callback in cfg.model.get("callbacks", {}).values()]
+    callbacks = [_callback(node, checkpoint_dir) for node in cfg.model.get("callbacks", {}).values()]
     trainer = instantiate(
         cfg.trainer,
         **cfg.model.get("trainer", {}),
@@ -93,6 +94,13 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     summary = module.fitted_summary() if hasattr(module, "fitted_summary") else {}
     atomic.write_json(output_dir / "fitted.json", {"model": cfg.model.name, "checkpoint": checkpoint, **summary})
     return module.to_contact_model()
+
+
+def _callback(node: DictConfig, checkpoint_dir: Path):
+    """A configured callback; checkpoints go into the run folder, where a restarted run looks for them."""
+    if node._target_.endswith("ModelCheckpoint"):
+        return instantiate(node, dirpath=str(checkpoint_dir))
+    return instantiate(node)
 
 
 def _load_module(cfg: DictConfig, dataset: Recordings, checkpoint: Path):
@@ -124,6 +132,7 @@ def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, 
 def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
+    pl.seed_everything(cfg.seed, workers=True)
     splits = ["train", "val"] + (["test"] if cfg.test else [])
     dataset = load_dataset(cfg, splits)
     logger = tracking.make_logger(cfg, output_dir)
