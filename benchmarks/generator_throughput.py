@@ -1,17 +1,19 @@
-"""Generator throughput: full generate_dataset against a bare PyBullet stepping loop, and whole-variant timings."""
+"""Generator throughput: generate_dataset against bare PyBullet loops over the same scenes, with a cost breakdown."""
 from __future__ import annotations
 
 import argparse
+import statistics
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pybullet
 
 from contactbench.generation.bullet import BulletScene
-from contactbench.generation.generator import SPLIT_SIZES, derive_seed, generate_dataset, toss_rng, worker_context
+from contactbench.generation.generator import SPLIT_SIZES, derive_seed, generate_dataset, toss_chunks, toss_rng, worker_context
 from contactbench.generation.scenes import BulletSettings, SceneSpec, sample_initial_state
 from contactbench.generation.solids import solid
 from contactbench.recordings import read_recordings, write_recordings
@@ -24,44 +26,76 @@ MULTICUBES_SPEC = SceneSpec("multicubes", friction=0.18, restitution=0.125, bodi
 SINGLE_BODY_VARIANTS = 17
 MULTICUBES_BODY_COUNTS = (1, 2, 3, 4, 5)
 
+State = tuple[np.ndarray, np.ndarray]
 
-def _bare_tosses(spec: SceneSpec, states: list[tuple[np.ndarray, np.ndarray]]) -> int:
-    """Step the tosses in one fresh client, as the generator's workers do, but record nothing."""
-    with BulletScene(solid(spec.faces), spec, SETTINGS) as scene:
-        for poses, velocities in states:
-            scene.set_state(poses, velocities)
-            for _ in range(SETTINGS.frames - 1):
-                pybullet.stepSimulation(scene.client)
-    return len(states)
+# ---------------------------------------------------------------- the two reference loops
 
 
-def bare_seconds(spec: SceneSpec, tosses: int, workers: int, seed: int) -> float:
-    """Wall time of the bare loop over the generator's own initial states, same process pool layout."""
+def step_only(scene: BulletScene, states: list[State]) -> None:
+    """The bare loop of the goal: every toss stepped as the generator steps it, nothing read back."""
+    client, step = scene.client, pybullet.stepSimulation
+    for poses, velocities in states:
+        scene.set_state(poses, velocities)
+        for _ in range(SETTINGS.frames - 1):
+            step(client)
+
+
+def step_and_read(scene: BulletScene, states: list[State]) -> None:
+    """The cheapest loop that gets a recording out of PyBullet's Python API: the generator's stepping plus its two
+    state reads per body and frame (pose, velocity), kept as PyBullet returns them and never converted."""
+    client, bodies, step = scene.client, scene.bodies, pybullet.stepSimulation
+    read_pose, read_velocity = pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
+    for poses, velocities in states:
+        scene.set_state(poses, velocities)
+        readings = []
+        record = readings.append
+        for frame in range(SETTINGS.frames):
+            if frame:
+                step(client)
+            for body in bodies:
+                record(read_pose(body, client))
+                record(read_velocity(body, client))
+
+
+Loop = Callable[[BulletScene, list[State]], None]
+
+_worker_scene: BulletScene | None = None  # each pool process's own scene, as the generator's workers hold one
+
+
+def _open_worker_scene(spec: SceneSpec) -> None:
+    global _worker_scene
+    _worker_scene = BulletScene(solid(spec.faces), spec, SETTINGS)
+
+
+def _run_in_worker(loop: Loop, states: list[State]) -> None:
+    loop(_worker_scene, states)
+
+
+def initial_states(spec: SceneSpec, tosses: int, seed: int) -> list[State]:
+    """The generator's own initial states for tosses 0..tosses-1."""
     mesh = solid(spec.faces)
     derived = derive_seed(seed, spec)
-    states = [sample_initial_state(spec, mesh, toss_rng(derived, toss)) for toss in range(tosses)]
-    shares = [states[worker::workers] for worker in range(workers)]
+    return [sample_initial_state(spec, mesh, toss_rng(derived, toss)) for toss in range(tosses)]
+
+
+def pool_seconds(loop: Loop, spec: SceneSpec, states: list[State], workers: int) -> float:
+    """Wall time of `loop` over `states` laid out as generate_dataset lays out its tosses: a fresh pool of as many
+    processes from the same start method, one scene each made when the process starts, the same chunks handed
+    out in the same order. The states are drawn beforehand, outside the timing: drawing them is generator work."""
+    chunks = [states[chunk.start : chunk.stop] for chunk in toss_chunks(len(states), workers)]
     start = time.perf_counter()
     if workers == 1:
-        _bare_tosses(spec, states)  # generate_dataset runs in-process too
+        with BulletScene(solid(spec.faces), spec, SETTINGS) as scene:
+            for chunk in chunks:
+                loop(scene, chunk)
     else:
-        with ProcessPoolExecutor(workers, mp_context=worker_context()) as pool:
-            list(pool.map(_bare_tosses, [spec] * workers, shares))
+        with ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_open_worker_scene, initargs=(spec,)) as pool:
+            for future in as_completed([pool.submit(_run_in_worker, loop, chunk) for chunk in chunks]):
+                future.result()
     return time.perf_counter() - start
 
 
-def generator_seconds(spec: SceneSpec, tosses: int, workers: int, seed: int, folder: Path) -> float:
-    start = time.perf_counter()
-    generate_dataset(spec, folder / spec.name, split_sizes=_split_sizes(tosses), seed=seed, workers=workers, progress=False)
-    return time.perf_counter() - start
-
-
-def writing_seconds(dataset: Path, folder: Path) -> float:
-    """Time write_recordings alone takes for a generated dataset (the part of the generator that is not PyBullet)."""
-    recordings = read_recordings(dataset)
-    start = time.perf_counter()
-    write_recordings(folder / "rewritten", recordings)
-    return time.perf_counter() - start
+# ---------------------------------------------------------------- measurements
 
 
 def _split_sizes(tosses: int) -> dict[str, int]:
@@ -73,20 +107,84 @@ def _split_sizes(tosses: int) -> dict[str, int]:
     return {"train": train, "val": val, "test": max(1, tosses - train - val)}
 
 
-def in_process_milliseconds(spec: SceneSpec, tosses: int, seed: int) -> tuple[float, float]:
-    """Per-toss cost in one client: BulletScene.simulate (stepping and recording) against stepping alone."""
-    mesh = solid(spec.faces)
-    derived = derive_seed(seed, spec)
-    states = [sample_initial_state(spec, mesh, toss_rng(derived, toss)) for toss in range(tosses)]
-    with BulletScene(mesh, spec, SETTINGS) as scene:
-        start = time.perf_counter()
-        for poses, velocities in states:
-            scene.simulate(poses, velocities, SETTINGS.frames)
-        recorded = time.perf_counter() - start
+def _generate(spec: SceneSpec, tosses: int, workers: int, seed: int, folder: Path) -> Path:
+    return generate_dataset(spec, folder / spec.name, split_sizes=_split_sizes(tosses), seed=seed, workers=workers, progress=False)
+
+
+def parallel_seconds(spec: SceneSpec, tosses: int, workers: int, seed: int, folder: Path, repeat: int) -> dict[str, float]:
+    """Wall seconds of generate_dataset and of the two reference loops, one run each, in an order that rotates
+    with `repeat` so that a change in the machine's load does not always fall on the same one."""
+    states = initial_states(spec, tosses, seed)
+    runs = {
+        "generator": lambda: _timed(lambda: _generate(spec, tosses, workers, seed, folder)),
+        "stepping": lambda: pool_seconds(step_only, spec, states, workers),
+        "stepping + reads": lambda: pool_seconds(step_and_read, spec, states, workers),
+    }
+    names = list(runs)
+    order = names[repeat % len(names) :] + names[: repeat % len(names)]
+    return {name: runs[name]() for name in order}
+
+
+def in_process_milliseconds(spec: SceneSpec, tosses: int, seed: int, folder: Path) -> dict[str, float]:
+    """CPU milliseconds per toss in this one process (other processes' load barely moves CPU time)."""
+    states = initial_states(spec, tosses, seed)
+    with BulletScene(solid(spec.faces), spec, SETTINGS) as scene:
+        runs = {
+            "stepping": lambda: step_only(scene, states),
+            "stepping + reads": lambda: step_and_read(scene, states),
+            "BulletScene.simulate": lambda: [scene.simulate(poses, velocities, SETTINGS.frames) for poses, velocities in states],
+            "generate_dataset": lambda: _generate(spec, tosses, 1, seed, folder),
+        }
+        return {name: 1e3 * _cpu_timed(run) / tosses for name, run in runs.items()}
+
+
+def writing_seconds(dataset: Path, folder: Path) -> float:
+    """Time write_recordings alone takes for a generated dataset (it runs after the workers are done)."""
+    recordings = read_recordings(dataset)
+    return _timed(lambda: write_recordings(folder / "rewritten", recordings))
+
+
+def _timed(run: Callable[[], object]) -> float:
     start = time.perf_counter()
-    _bare_tosses(spec, states)
-    bare = time.perf_counter() - start
-    return 1e3 * recorded / tosses, 1e3 * bare / tosses
+    run()
+    return time.perf_counter() - start
+
+
+def _cpu_timed(run: Callable[[], object]) -> float:
+    start = time.process_time()
+    run()
+    return time.process_time() - start
+
+
+def _medians(rows: list[dict[str, float]]) -> dict[str, float]:
+    return {name: statistics.median(row[name] for row in rows) for name in rows[0]}
+
+
+def report(spec: SceneSpec, tosses: int, parallel: list[dict[str, float]], in_process: list[dict[str, float]], writing: float) -> None:
+    seconds = _medians(parallel)
+    # Each run's ratio against the reference loop run right beside it, then the median over the repeats.
+    goal = [row["stepping"] / row["generator"] for row in parallel]
+    ceiling = [row["stepping"] / row["stepping + reads"] for row in parallel]
+    overhead = [row["stepping + reads"] / row["generator"] for row in parallel]
+    print(f"  {spec.name} bodies={spec.bodies}, {len(parallel)} runs, medians:")
+    for name, value in seconds.items():
+        print(f"    {name:<18} {value:6.2f} s = {tosses / value:5.0f} tosses/s")
+    print(
+        f"    ratio generator / bare stepping loop: {statistics.median(goal):.2f} "
+        f"(runs {min(goal):.2f}..{max(goal):.2f}; goal >= 0.8)\n"
+        f"    ratio stepping + reads / bare stepping loop: {statistics.median(ceiling):.2f} "
+        f"(the most any recorder using PyBullet's Python API can reach)\n"
+        f"    ratio generator / stepping + reads: {statistics.median(overhead):.2f} (the generator's own cost)\n"
+        f"    of the generator, writing the dataset (write_recordings alone, after the workers): {writing:.2f} s"
+    )
+    milliseconds = _medians(in_process)
+    stepping = milliseconds["stepping"]
+    print("    in one process, CPU ms per toss (extra = over the line above; % of stepping):")
+    previous = 0.0
+    for name, value in milliseconds.items():
+        extra = f"  extra {value - previous:5.2f} ms = {100 * (value - previous) / stepping:3.0f}%" if previous else ""
+        print(f"      {name:<20} {value:5.2f} ms  ratio {stepping / value:.2f}{extra}")
+        previous = value
 
 
 def main() -> None:
@@ -94,33 +192,35 @@ def main() -> None:
     parser.add_argument("--tosses", type=int, default=sum(SPLIT_SIZES.values()), help="tosses per measured variant (default: a whole variant)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeats", type=int, default=5, help="runs of everything, interleaved; medians are reported")
     args = parser.parse_args()
 
-    print(f"pybullet generator, {args.tosses} tosses per variant, {args.workers} workers (cores may be shared: times are noisy)")
+    print(
+        f"pybullet generator, {args.tosses} tosses per variant, {args.workers} workers, {args.repeats} runs "
+        f"(cores may be shared: medians of interleaved runs)\n"
+        f"  generator: generate_dataset, sampling, simulating, recording and writing\n"
+        f"  stepping: the same tosses only stepped; stepping + reads: also the two PyBullet state reads per body and "
+        f"frame a recording needs, results kept unconverted; both in the generator's pool layout"
+    )
+    in_process_tosses = min(args.tosses, 100)
     with tempfile.TemporaryDirectory() as folder:
         # Start the worker machinery once, as a run over many variants would: the first pool pays it alone.
-        warm_up = time.perf_counter()
-        generate_dataset(CUBE_SPEC, Path(folder) / "warm_up", split_sizes=_split_sizes(3), workers=args.workers, progress=False)
-        print(f"  worker start-up, first variant of a run only: {time.perf_counter() - warm_up:.2f} s")
-        seconds = {}
+        warm_up = _timed(lambda: generate_dataset(CUBE_SPEC, Path(folder) / "warm_up", split_sizes=_split_sizes(3), workers=args.workers, progress=False))
+        print(f"  worker start-up, first variant of a run only: {warm_up:.2f} s")
+        generator_seconds = {}
         for spec in (CUBE_SPEC, MULTICUBES_SPEC):
-            generated = generator_seconds(spec, args.tosses, args.workers, args.seed, Path(folder))
-            bare = bare_seconds(spec, args.tosses, args.workers, args.seed)
-            recorded_ms, bare_ms = in_process_milliseconds(spec, min(args.tosses, 100), args.seed)
-            writing = writing_seconds(Path(folder) / spec.name, Path(folder))
-            seconds[spec.bodies] = generated
-            print(
-                f"  {spec.name} bodies={spec.bodies}: generate_dataset {generated:.2f} s = {args.tosses / generated:.0f} tosses/s; "
-                f"bare loop {bare:.2f} s = {args.tosses / bare:.0f} tosses/s; ratio {bare / generated:.2f} (goal >= 0.8)\n"
-                f"    of which writing the dataset (write_recordings alone): {writing:.2f} s\n"
-                f"    in one process per toss: simulate {recorded_ms:.2f} ms, stepping alone {bare_ms:.2f} ms "
-                f"(ratio {bare_ms / recorded_ms:.2f})"
-            )
+            parallel, in_process = [], []
+            for repeat in range(args.repeats):
+                parallel.append(parallel_seconds(spec, args.tosses, args.workers, args.seed, Path(folder), repeat))
+                in_process.append(in_process_milliseconds(spec, in_process_tosses, args.seed, Path(folder) / "in_process"))
+            writing = writing_seconds(_generate(spec, args.tosses, args.workers, args.seed, Path(folder)), Path(folder))
+            report(spec, args.tosses, parallel, in_process, writing)
+            generator_seconds[spec.bodies] = _medians(parallel)["generator"]
     # Cost grows about linearly with the body count between the two measured ends; other solids cost about
     # what a cube costs.
-    per_body = (seconds[5] - seconds[1]) / 4
-    multicubes = sum(seconds[1] + per_body * (bodies - 1) for bodies in MULTICUBES_BODY_COUNTS)
-    estimate = (SINGLE_BODY_VARIANTS * seconds[1] + multicubes) * sum(SPLIT_SIZES.values()) / args.tosses
+    per_body = (generator_seconds[5] - generator_seconds[1]) / 4
+    multicubes = sum(generator_seconds[1] + per_body * (bodies - 1) for bodies in MULTICUBES_BODY_COUNTS)
+    estimate = (SINGLE_BODY_VARIANTS * generator_seconds[1] + multicubes) * sum(SPLIT_SIZES.values()) / args.tosses
     print(f"  estimate for all 22 variants of {sum(SPLIT_SIZES.values())} tosses: {estimate:.0f} s ({estimate / 60:.1f} min)")
 
 

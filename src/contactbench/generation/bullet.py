@@ -16,6 +16,8 @@ CONTACT_KEYS = ("contact_normal_force", "contact_friction_force", "contact_norma
 _PARKING_SPACING = 10.0
 _PARKING_HEIGHT = 10.0
 _IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
+ENGINE_STATE_SIZE = 13  # per body and frame: position, quaternion x y z w, linear velocity, angular velocity
+_flatten = itertools.chain.from_iterable
 # PyBullet defaults replaced on purpose for every object: 0.04 linear and angular air drag nobody asked for, and
 # a 1 mm collision margin that would keep every object hovering 1 mm above the floor. (The AABB-box inertia
 # default is replaced too, by the mesh's own, in _build.)
@@ -127,35 +129,38 @@ class BulletScene:
         Returns poses [T, K, 7] (w-first) and velocities [T, K, 6], world frame; with record_contacts also a dict
         of the CONTACT_KEYS arrays [T, K, 3] (see `_contact_wrenches`), frame 0 all zeros.
         """
+        states, contacts = self.toss(initial_poses, initial_velocities, frames, record_contacts=record_contacts)
+        poses, velocities = recorded_motion(states, np.asarray(initial_poses, dtype=np.float64)[:, 3:])
+        if not record_contacts:
+            return poses, velocities
+        return poses, velocities, contacts
+
+    def toss(
+        self, initial_poses: np.ndarray, initial_velocities: np.ndarray, frames: int, *, record_contacts: bool = False
+    ) -> tuple[np.ndarray, dict[str, np.ndarray] | None]:
+        """Like `simulate`, but the states as PyBullet reports them, [T, K, 13] (see `recorded_motion`), so that a
+        batch of tosses can be converted at once; the contact wrenches are None without record_contacts."""
         if frames < 1:
             raise ValueError(f"frames must be at least 1, got {frames}")
         self.set_state(initial_poses, initial_velocities)
         client, bodies = self.client, self.bodies
-        read_pose, read_velocity = pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
-        # Engine calls dominate the cost of a toss: keep the per-step work to the calls themselves and
-        # convert the collected tuples to arrays once at the end.
-        states = [read_pose(body, client) + read_velocity(body, client) for body in bodies]
-        record_state = states.append
+        step, read_pose, read_velocity = pybullet.stepSimulation, pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
+        # The two state reads per body and frame cost about half as much as a step; keep everything else out of
+        # the loop: collect PyBullet's tuples and convert them to one array at the end.
+        readings = []
+        record = readings.append
         contact_log: list[tuple[int, tuple]] = []
-        for t in range(1, frames):
-            pybullet.stepSimulation(client)
+        for t in range(frames):
+            if t:
+                step(client)
+                if record_contacts:
+                    contact_log.extend((t, point) for point in pybullet.getContactPoints(physicsClientId=client))
             for body in bodies:
-                record_state(read_pose(body, client) + read_velocity(body, client))
-            if record_contacts:
-                contact_log.extend((t, point) for point in pybullet.getContactPoints(physicsClientId=client))
-        flat = np.fromiter(itertools.chain.from_iterable(itertools.chain.from_iterable(states)), dtype=np.float64)
-        flat = flat.reshape(frames, len(bodies), 13)  # position, quaternion x y z w, linear, angular velocity
-        quaternions = rotations.xyzw_to_wxyz(flat[..., 3:7])
-        # Bullet hands back either sign of a quaternion from one step to the next; pick signs that make each
-        # body's quaternion path continuous, starting on the side of the given initial orientation.
-        previous = np.concatenate([np.asarray(initial_poses, dtype=np.float64)[None, :, 3:], quaternions[:-1]])
-        steps = np.where(np.einsum("tkq,tkq->tk", quaternions, previous) < 0, -1.0, 1.0)
-        quaternions *= np.cumprod(steps, axis=0)[..., None]
-        poses = np.concatenate([flat[..., :3], quaternions], axis=-1)
-        velocities = np.ascontiguousarray(flat[..., 7:])
-        if not record_contacts:
-            return poses, velocities
-        return poses, velocities, self._contact_wrenches(contact_log, poses[..., :3])
+                record(read_pose(body, client))
+                record(read_velocity(body, client))
+        flat = np.fromiter(_flatten(_flatten(readings)), dtype=np.float64, count=frames * len(bodies) * ENGINE_STATE_SIZE)
+        states = flat.reshape(frames, len(bodies), ENGINE_STATE_SIZE)
+        return states, self._contact_wrenches(contact_log, states[..., :3]) if record_contacts else None
 
     def _contact_wrenches(self, contact_log: list[tuple[int, tuple]], centres: np.ndarray) -> dict[str, np.ndarray]:
         """Per-frame, per-body contact forces (N) and torques about the centre of mass (N m), [T, K, 3] each.
@@ -193,3 +198,18 @@ class BulletScene:
                 result[f"contact_{part}_force"] += force_sum[:, :count]
                 result[f"contact_{part}_torque"] += torque_sum[:, :count]
         return result
+
+
+def recorded_motion(engine_states: np.ndarray, initial_orientations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses [..., T, K, 7] (w-first) and velocities [..., T, K, 6] from PyBullet's states [..., T, K, 13]
+    (position, quaternion x y z w, linear velocity, angular velocity; world frame), over any leading axes.
+
+    Bullet hands back either sign of a quaternion from one step to the next; the signs are chosen to make each
+    body's quaternion path continuous, starting on the side of `initial_orientations` [..., K, 4] (w-first).
+    """
+    quaternions = rotations.xyzw_to_wxyz(engine_states[..., 3:7])
+    initial = np.broadcast_to(initial_orientations, quaternions.shape[:-3] + quaternions.shape[-2:])
+    previous = np.concatenate([initial[..., None, :, :], quaternions[..., :-1, :, :]], axis=-3)
+    steps = np.where(np.einsum("...q,...q->...", quaternions, previous) < 0, -1.0, 1.0)
+    quaternions *= np.cumprod(steps, axis=-2)[..., None]
+    return np.concatenate([engine_states[..., :3], quaternions], axis=-1), np.ascontiguousarray(engine_states[..., 7:])

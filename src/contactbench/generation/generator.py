@@ -8,7 +8,7 @@ import importlib.metadata
 import json
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -16,7 +16,7 @@ from typing import Mapping
 import numpy as np
 from tqdm import tqdm
 
-from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, CONTACT_KEYS, BulletScene
+from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, CONTACT_KEYS, ENGINE_STATE_SIZE, BulletScene, recorded_motion
 from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, solid
 from contactbench.meshes import Mesh
@@ -60,20 +60,40 @@ class _Job:
         raise IndexError(f"toss {toss} is beyond the {start} tosses of the splits")
 
 
+@dataclass(frozen=True)
+class _Chunk:
+    """Consecutive tosses from `start`, recorded: poses [n, T, K, 7], velocities [n, T, K, 6], contact arrays."""
+
+    start: int
+    poses: np.ndarray
+    velocities: np.ndarray
+    contacts: dict[str, np.ndarray]
+
+
 class _TossRunner:
-    """Simulates tosses by index in one PyBullet client (one per process)."""
+    """Simulates chunks of tosses by index in one PyBullet client (one per process)."""
 
     def __init__(self, job: _Job):
         self.job = job
         self.scene = BulletScene(job.mesh, job.spec, job.settings)
 
-    def __call__(self, toss: int) -> tuple:
-        job = self.job
-        try:
-            poses, velocities = sample_initial_state(job.spec, job.mesh, toss_rng(job.derived_seed, toss))
-        except SpawnError as error:
-            raise SpawnError(f"toss {toss} ({job.place(toss)}): {error}") from None
-        return self.scene.simulate(poses, velocities, job.settings.frames, record_contacts=job.record_contacts)
+    def __call__(self, tosses: range) -> _Chunk:
+        job, frames, bodies = self.job, self.job.settings.frames, self.job.spec.bodies
+        states = np.empty((len(tosses), frames, bodies, ENGINE_STATE_SIZE))
+        initial_orientations = np.empty((len(tosses), bodies, 4))
+        contacts = {key: np.empty((len(tosses), frames, bodies, 3)) for key in CONTACT_KEYS} if job.record_contacts else {}
+        for row, toss in enumerate(tosses):
+            try:
+                poses, velocities = sample_initial_state(job.spec, job.mesh, toss_rng(job.derived_seed, toss))
+            except SpawnError as error:
+                raise SpawnError(f"toss {toss} ({job.place(toss)}): {error}") from None
+            states[row], wrenches = self.scene.toss(poses, velocities, frames, record_contacts=job.record_contacts)
+            initial_orientations[row] = poses[:, 3:]
+            for key in contacts:
+                contacts[key][row] = wrenches[key]
+        # One vectorised conversion per chunk rather than per toss: the numpy calls' overhead is per call.
+        poses, velocities = recorded_motion(states, initial_orientations)
+        return _Chunk(tosses.start, poses, velocities, contacts)
 
 
 _worker_runner: _TossRunner | None = None  # each pool process's own runner, set by _start_worker
@@ -84,8 +104,23 @@ def _start_worker(job: _Job) -> None:
     _worker_runner = _TossRunner(job)
 
 
-def _run_in_worker(toss: int) -> tuple:
-    return _worker_runner(toss)
+def _run_in_worker(tosses: range) -> _Chunk:
+    return _worker_runner(tosses)
+
+
+def toss_chunks(total: int, workers: int, largest: int = 32) -> list[range]:
+    """Consecutive toss ranges covering 0..total, in order, shrinking toward the end.
+
+    Each is at most `largest` (the progress bar moves, a result stays a few MB) and at most 1/(2 workers) of the
+    tosses still to hand out, so the last ones are single tosses and the workers finish together.
+    """
+    chunks = []
+    start = 0
+    while start < total:
+        size = max(1, min(largest, (total - start) // (2 * workers)))
+        chunks.append(range(start, start + size))
+        start += size
+    return chunks
 
 
 def worker_context() -> multiprocessing.context.BaseContext:
@@ -102,34 +137,41 @@ def worker_context() -> multiprocessing.context.BaseContext:
     return context
 
 
-def _simulate_all(job: _Job, workers: int, progress: bool, description: str) -> list[tuple]:
-    """Every toss's simulate() result, in toss order."""
+def _simulate_all(job: _Job, workers: int, progress: bool, description: str) -> _Chunk:
+    """Every toss, in toss order, as one chunk."""
     total = sum(size for _, size in job.split_sizes)
+    shape = (total, job.settings.frames, job.spec.bodies)
+    everything = _Chunk(
+        0,
+        np.empty(shape + (7,)),
+        np.empty(shape + (6,)),
+        {key: np.empty(shape + (3,)) for key in CONTACT_KEYS} if job.record_contacts else {},
+    )
+    chunks = toss_chunks(total, workers)
     with contextlib.ExitStack() as stack:
         if workers == 1:
             runner = _TossRunner(job)
             stack.callback(runner.scene.close)
-            outcomes = map(runner, range(total))
+            outcomes = map(runner, chunks)
         else:
             # An executor, unlike multiprocessing.Pool, fails loudly instead of restarting workers that cannot start.
             pool = stack.enter_context(
                 ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_start_worker, initargs=(job,))
             )
-            outcomes = pool.map(_run_in_worker, range(total), chunksize=max(1, min(16, total // (8 * workers))))
+            # Runs first on the way out: after a failure, the chunks not started yet are dropped, not waited for.
+            stack.callback(pool.shutdown, cancel_futures=True)
+            futures = [pool.submit(_run_in_worker, chunk) for chunk in chunks]
+            outcomes = (future.result() for future in as_completed(futures))
         bar = stack.enter_context(tqdm(total=total, desc=description, unit="toss", disable=not progress))
-        results = []
-        for outcome in outcomes:
-            results.append(outcome)
-            bar.update()
-        return results
-
-
-def _stack_split(results: list[tuple], record_contacts: bool, frames: int) -> Split:
-    poses = np.stack([result[0] for result in results])
-    velocities = np.stack([result[1] for result in results])
-    extras = {key: np.stack([result[2][key] for result in results]) for key in CONTACT_KEYS} if record_contacts else {}
-    lengths = np.full(len(results), frames, dtype=np.int64)
-    return Split(poses=poses, lengths=lengths, velocities=velocities, extras=extras)
+        # Chunks land in place as they arrive, while the workers go on with the next ones.
+        for chunk in outcomes:
+            rows = slice(chunk.start, chunk.start + len(chunk.poses))
+            everything.poses[rows] = chunk.poses
+            everything.velocities[rows] = chunk.velocities
+            for key, values in chunk.contacts.items():
+                everything.contacts[key][rows] = values
+            bar.update(len(chunk.poses))
+    return everything
 
 
 def generate_dataset(
@@ -163,12 +205,18 @@ def generate_dataset(
     derived_seed = derive_seed(seed, spec)
     job = _Job(mesh, spec, settings, derived_seed, sizes, record_contacts)
     name = f"{spec.name}-{variant}" if variant else spec.name
-    results = _simulate_all(job, min(workers, sum(size for _, size in sizes)), progress, name)
+    recorded = _simulate_all(job, min(workers, sum(size for _, size in sizes)), progress, name)
 
     splits = {}
     start = 0
     for split_name, size in sizes:
-        splits[split_name] = _stack_split(results[start : start + size], record_contacts, settings.frames)
+        rows = slice(start, start + size)
+        splits[split_name] = Split(
+            poses=recorded.poses[rows],
+            lengths=np.full(size, settings.frames, dtype=np.int64),
+            velocities=recorded.velocities[rows],
+            extras={key: values[rows] for key, values in recorded.contacts.items()},
+        )
         start += size
     mesh_path = f"meshes/{solid_name}.obj"
     _, inertia = mesh.mass_properties(settings.mass)

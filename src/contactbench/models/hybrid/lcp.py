@@ -161,6 +161,24 @@ def normal_impulses(state: State, scene: Scene, linear: np.ndarray, angular: np.
     return solve_at_candidates(matrix, free_velocity - least_velocity, candidates, settings.solver)
 
 
+def dissipative_friction(state: State, scene: Scene, friction_impulse: np.ndarray) -> np.ndarray:
+    """Friction impulses [B, 6] scaled down (by s in [0, 1]) so that they cannot add kinetic energy or overshoot.
+
+    Coulomb friction opposes motion: within one step it can at most bring the motion it acts on to rest, never
+    reverse it or speed the body up. Along the line s J of a friction impulse J, the kinetic energy after the step
+    (from the velocities after gravity, v) is a parabola in s with its minimum at s* = -J.v / (J^T M^-1 J); friction
+    may go as far as that minimum and no further, so s = clip(s*, 0, 1). A learned wrench that would push the body
+    along (J.v > 0) is dropped; one that would overshoot (s* < 1), e.g. a nearly resting body that it would set
+    sliding the other way, is cut back to the impulse that stops it.
+    """
+    linear, angular = dynamics.unconstrained_velocities(state, scene)
+    linear_change, angular_change = dynamics.velocity_change(state.orientation, friction_impulse, scene.body)
+    braking = -(np.sum(friction_impulse[..., :3] * linear, axis=-1) + np.sum(friction_impulse[..., 3:] * angular, axis=-1))
+    curvature = np.sum(friction_impulse[..., :3] * linear_change, axis=-1) + np.sum(friction_impulse[..., 3:] * angular_change, axis=-1)
+    scale = np.clip(braking / np.where(curvature > 0, curvature, np.inf), 0.0, 1.0)
+    return friction_impulse * scale[..., None]
+
+
 def frictionless_step(state: State, scene: Scene, friction_impulse: np.ndarray, settings: ContactSettings) -> tuple[State, np.ndarray]:
     """One step of bodies [B]: gravity and the given friction impulses [B, 6], then the LCP's normal impulses, then integration.
 
