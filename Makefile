@@ -7,7 +7,7 @@ BIN = $(VENV)/bin
 
 # The embedded default: one generated variant and the real cube, every model at budget=quick, scored on val and
 # test, then one results table.
-MAIN_MODELS = mujoco_default,mujoco_fixed,sysid
+MAIN_MODELS = mujoco_default,mujoco_fixed,sysid,gnn,hybrid
 main: $(VENV)/.installed
 	$(BIN)/python generate.py variant=frictioncubes_0.5
 	$(BIN)/python train.py -m model=$(MAIN_MODELS) variant=frictioncubes_0.5,contactnets_cube budget=quick test=true hydra.sweep.dir=outputs/main

@@ -192,7 +192,7 @@ def test_dissipative_friction_keeps_a_resting_cube_at_rest(scene):
     friction = np.array([[0.02, -0.01, 0.0, 0.003, 0.001, -0.002]])
     np.testing.assert_array_equal(lcp.dissipative_friction(state, scene, friction), np.zeros((1, 6)))
     after, _ = lcp.frictionless_step(state, scene, lcp.dissipative_friction(state, scene, friction), ContactSettings())
-    assert np.abs(after.linear).max() < 1e-12 and np.abs(after.angular).max() < 1e-12
+    assert np.abs(after.linear).max() < 1e-9 and np.abs(after.angular).max() < 1e-9  # PGS tolerance
 
 
 def test_dissipative_friction_never_adds_kinetic_energy(scene):
