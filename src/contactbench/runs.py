@@ -6,6 +6,7 @@ import logging
 from pathlib import Path
 
 import pytorch_lightning as pl
+import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig
 
@@ -122,6 +123,11 @@ def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> Contac
 # ---------------------------------------------------------------- entry points
 
 
+def _configure_torch(cfg: DictConfig) -> None:
+    if cfg.get("torch_threads"):
+        torch.set_num_threads(int(cfg.torch_threads))
+
+
 def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, split: str, out_dir: Path, logger) -> dict:
     score = score_model(model, dataset, split, cfg.context_frames, dataset_name=cfg.dataset.name, variant=cfg.dataset.variant)
     document = write_score(score, out_dir)
@@ -133,6 +139,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
     pl.seed_everything(cfg.seed, workers=True)
+    _configure_torch(cfg)
     splits = ["train", "val"] + (["test"] if cfg.test else [])
     dataset = load_dataset(cfg, splits)
     logger = tracking.make_logger(cfg, output_dir)
@@ -151,6 +158,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
 def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
+    _configure_torch(cfg)
     dataset = load_dataset(cfg, [cfg.split])
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"

@@ -109,7 +109,6 @@ class HybridModule(pl.LightningModule):
         contact_margin: float = 0.05,
         stabilisation: float = 0.2,
         restitution: float = 0.0,
-        torch_threads: int = 1,
     ):
         super().__init__()
         scene = dynamics.scene_from_recordings(dataset)
@@ -127,14 +126,7 @@ class HybridModule(pl.LightningModule):
         self.register_buffer("target_mean", torch.zeros(6))
         self.register_buffer("target_std", torch.ones(6))
 
-    def _use_torch_threads(self) -> None:
-        # Process-wide: this MLP's batches are too small to gain from a second thread, and where another process
-        # holds the other core (2 shared cores), intra-op threads wait on each other: one training epoch on
-        # frictioncubes took 11 s with 2 threads against 0.55 s with 1, and a val rollout 5.8 s against 0.6 s.
-        torch.set_num_threads(self.hparams.torch_threads)
-
     def setup(self, stage: str) -> None:
-        self._use_torch_threads()
         if stage != "fit":
             return
         datamodule = self.trainer.datamodule
@@ -184,7 +176,6 @@ class HybridModule(pl.LightningModule):
             return self(tensor).cpu().numpy().astype(np.float64)
 
     def to_contact_model(self) -> "HybridContactModel":
-        self._use_torch_threads()
         return HybridContactModel(self.predict_friction, self.settings)
 
 
