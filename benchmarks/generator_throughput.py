@@ -16,6 +16,7 @@ from contactbench.generation.bullet import BulletScene
 from contactbench.generation.generator import SPLIT_SIZES, derive_seed, generate_dataset, toss_chunks, toss_rng, worker_context
 from contactbench.generation.scenes import BulletSettings, SceneSpec, sample_initial_state
 from contactbench.generation.solids import solid
+from contactbench.meshes import Mesh
 from contactbench.recordings import read_recordings, write_recordings
 
 SETTINGS = BulletSettings()
@@ -62,9 +63,9 @@ Loop = Callable[[BulletScene, list[State]], None]
 _worker_scene: BulletScene | None = None  # each pool process's own scene, as the generator's workers hold one
 
 
-def _open_worker_scene(spec: SceneSpec) -> None:
+def _open_worker_scene(mesh: Mesh, spec: SceneSpec) -> None:
     global _worker_scene
-    _worker_scene = BulletScene(solid(spec.faces), spec, SETTINGS)
+    _worker_scene = BulletScene(mesh, spec, SETTINGS)
 
 
 def _run_in_worker(loop: Loop, states: list[State]) -> None:
@@ -83,13 +84,14 @@ def pool_seconds(loop: Loop, spec: SceneSpec, states: list[State], workers: int)
     processes from the same start method, one scene each made when the process starts, the same chunks handed
     out in the same order. The states are drawn beforehand, outside the timing: drawing them is generator work."""
     chunks = [states[chunk.start : chunk.stop] for chunk in toss_chunks(len(states), workers)]
+    mesh = solid(spec.faces)  # made once and shipped to the workers, as generate_dataset does
     start = time.perf_counter()
     if workers == 1:
-        with BulletScene(solid(spec.faces), spec, SETTINGS) as scene:
+        with BulletScene(mesh, spec, SETTINGS) as scene:
             for chunk in chunks:
                 loop(scene, chunk)
     else:
-        with ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_open_worker_scene, initargs=(spec,)) as pool:
+        with ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_open_worker_scene, initargs=(mesh, spec)) as pool:
             for future in as_completed([pool.submit(_run_in_worker, loop, chunk) for chunk in chunks]):
                 future.result()
     return time.perf_counter() - start
@@ -125,15 +127,20 @@ def parallel_seconds(spec: SceneSpec, tosses: int, workers: int, seed: int, fold
     return {name: runs[name]() for name in order}
 
 
-def in_process_milliseconds(spec: SceneSpec, tosses: int, seed: int, folder: Path) -> dict[str, float]:
-    """CPU milliseconds per toss in this one process (other processes' load barely moves CPU time)."""
+def in_process_milliseconds(spec: SceneSpec, tosses: int, seed: int) -> dict[str, float]:
+    """CPU milliseconds per toss in this one process and one scene (CPU time barely moves with other processes'
+    load), each line adding one part of a generator worker's work to the line before it."""
+    mesh = solid(spec.faces)
+    derived = derive_seed(seed, spec)
     states = initial_states(spec, tosses, seed)
-    with BulletScene(solid(spec.faces), spec, SETTINGS) as scene:
+    with BulletScene(mesh, spec, SETTINGS) as scene:
         runs = {
             "stepping": lambda: step_only(scene, states),
             "stepping + reads": lambda: step_and_read(scene, states),
             "BulletScene.simulate": lambda: [scene.simulate(poses, velocities, SETTINGS.frames) for poses, velocities in states],
-            "generate_dataset": lambda: _generate(spec, tosses, 1, seed, folder),
+            "+ sampling the state": lambda: [
+                scene.simulate(*sample_initial_state(spec, mesh, toss_rng(derived, toss)), SETTINGS.frames) for toss in range(tosses)
+            ],
         }
         return {name: 1e3 * _cpu_timed(run) / tosses for name, run in runs.items()}
 
@@ -212,7 +219,7 @@ def main() -> None:
             parallel, in_process = [], []
             for repeat in range(args.repeats):
                 parallel.append(parallel_seconds(spec, args.tosses, args.workers, args.seed, Path(folder), repeat))
-                in_process.append(in_process_milliseconds(spec, in_process_tosses, args.seed, Path(folder) / "in_process"))
+                in_process.append(in_process_milliseconds(spec, in_process_tosses, args.seed))
             writing = writing_seconds(_generate(spec, args.tosses, args.workers, args.seed, Path(folder)), Path(folder))
             report(spec, args.tosses, parallel, in_process, writing)
             generator_seconds[spec.bodies] = _medians(parallel)["generator"]

@@ -9,8 +9,8 @@ import pybullet
 import pytest
 
 from contactbench import rotations
-from contactbench.generation.bullet import CONTACT_KEYS, BulletScene
-from contactbench.generation.generator import derive_seed, generate_dataset, toss_rng
+from contactbench.generation.bullet import CONTACT_KEYS, BulletScene, recorded_motion
+from contactbench.generation.generator import derive_seed, generate_dataset, toss_chunks, toss_rng
 from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, WIDTH, convex_mesh, solid
 from contactbench.kinematics import estimate_velocities, world_vertices
@@ -182,6 +182,37 @@ def test_recorded_quaternions_are_w_first():
     np.testing.assert_allclose(estimate_velocities(poses, SETTINGS.dt)[1:], velocities[1:], atol=1e-9)
 
 
+def test_recorded_motion_reorders_quaternions_and_makes_their_signs_continuous():
+    # PyBullet's x, y, z, w quaternions with the sign flipping at frames 1 and 3; velocities pass through untouched.
+    q_xyzw = rotations.normalize(np.array([0.1, 0.2, 0.3, 0.9]))
+    signs = np.array([1.0, -1.0, -1.0, 1.0])
+    states = np.zeros((2, 4, 1, 13))  # two tosses at once
+    states[..., :3] = [0.5, -0.5, 0.25]
+    states[..., 3:7] = signs[None, :, None, None] * q_xyzw
+    states[..., 7:] = np.arange(6.0)
+    q_wxyz = q_xyzw[[3, 0, 1, 2]]
+    initial = np.stack([q_wxyz, -q_wxyz])[:, None]  # the second toss starts on the other side
+    poses, velocities = recorded_motion(states, initial)
+    assert poses.shape == (2, 4, 1, 7) and velocities.shape == (2, 4, 1, 6)
+    np.testing.assert_array_equal(poses[0, :, 0, 3:], np.tile(q_wxyz, (4, 1)))
+    np.testing.assert_array_equal(poses[1, :, 0, 3:], np.tile(-q_wxyz, (4, 1)))
+    np.testing.assert_array_equal(poses[..., :3], states[..., :3])
+    np.testing.assert_array_equal(velocities, states[..., 7:])
+
+
+def test_batched_conversion_of_raw_tosses_equals_simulate():
+    spec = SceneSpec("multicubes", 0.18, 0.125, bodies=2, center_bias_speed=0.5)
+    initial = [sample_initial_state(spec, CUBE, np.random.default_rng(seed)) for seed in range(2)]
+    with cube_scene(bodies=2, friction=0.18, restitution=0.125) as scene:
+        raw = np.stack([scene.toss(poses, velocities, 60)[0] for poses, velocities in initial])
+        one_by_one = [scene.simulate(poses, velocities, 60) for poses, velocities in initial]
+    poses, velocities = recorded_motion(raw, np.stack([poses[:, 3:] for poses, _ in initial]))
+    for n, (expected_poses, expected_velocities) in enumerate(one_by_one):
+        np.testing.assert_array_equal(poses[n], expected_poses)
+        np.testing.assert_array_equal(velocities[n], expected_velocities)
+    assert np.abs(velocities[:, -1] - velocities[:, 0]).max() > 0.1  # the tosses moved: the check is not trivial
+
+
 def test_contact_wrenches_explain_the_motion():
     # Two cubes sliding into each other on the floor: floor and body-body contacts, normal and friction parts.
     poses0 = np.array([[-0.12, 0.0, WIDTH / 2, 1.0, 0.0, 0.0, 0.0], [0.12, 0.01, WIDTH / 2, 1.0, 0.0, 0.0, 0.0]])
@@ -271,4 +302,18 @@ def test_generation_is_byte_deterministic_and_independent_of_workers(tmp_path):
 def test_generation_reports_the_toss_that_cannot_be_placed(tmp_path):
     with pytest.raises(SpawnError, match=r"toss 0 \(train toss 0\): body \d+ of 40"):
         _generate(tmp_path / "crowded", SceneSpec("multicubes", 0.18, 0.125, bodies=40))
+    assert not (tmp_path / "crowded").exists()
+
+
+@pytest.mark.parametrize("total, workers", [(550, 2), (550, 1), (7, 2), (1, 2)])
+def test_toss_chunks_cover_every_toss_once_and_shrink_toward_the_end(total, workers):
+    chunks = toss_chunks(total, workers)
+    assert [toss for chunk in chunks for toss in chunk] == list(range(total))
+    sizes = [len(chunk) for chunk in chunks]
+    assert max(sizes) <= 32 and sizes == sorted(sizes, reverse=True) and sizes[-1] == 1
+
+
+def test_a_failing_worker_fails_the_whole_generation(tmp_path):
+    with pytest.raises(SpawnError, match=r"toss \d+ \((train|val|test) toss \d+\): body \d+ of 40"):
+        _generate(tmp_path / "crowded", SceneSpec("multicubes", 0.18, 0.125, bodies=40), workers=2)
     assert not (tmp_path / "crowded").exists()

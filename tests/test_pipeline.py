@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 
 from contactbench import runs
 from contactbench.config import CONFIG_DIR, REPO_ROOT
+from contactbench.errors import ContactbenchError
 
 REQUIRED_KEYS = {
     "model", "dataset", "variant", "split", "n_trajectories", "context_frames", "pos_err", "rot_err_rad",
@@ -47,7 +48,7 @@ def test_evaluate_analytical_baselines_on_real_cube(tmp_path):
         assert (tmp_path / cfg.model.name / "per_trajectory.csv").read_text().count("\n") == 111
     # The published parameters were identified on this cube: they must beat MuJoCo's untuned defaults.
     default = json.loads((tmp_path / "mujoco_default" / "metrics.json").read_text())
-    fixed = json.loads((tmp_path / "mujoco_fixed" / "metrics.json").read_text())
+    fixed = json.loads((tmp_path / "mujoco_fixed_acosta2022" / "metrics.json").read_text())
     assert fixed["pos_err"] < default["pos_err"]
 
 
@@ -117,6 +118,27 @@ def test_multirun_names_job_folders_after_their_overrides(tmp_path):
         "evaluate.py", ["-m", "model=mujoco_default,mujoco_fixed", "variant=contactnets_cube", "split=val", f"hydra.sweep.dir={tmp_path}/sweep"], tmp_path, timeout=300
     )
     assert result.returncode == 0, result.stderr[-2000:]
-    for model in ("mujoco_default", "mujoco_fixed"):
+    for model, name in (("mujoco_default", "mujoco_default"), ("mujoco_fixed", "mujoco_fixed_acosta2022")):
         document = json.loads((tmp_path / "sweep" / f"model={model},split=val,variant=contactnets_cube" / "metrics.json").read_text())
-        assert document["model"] == model and document["n_trajectories"] == 165
+        assert document["model"] == name and document["n_trajectories"] == 165
+
+
+def test_a_run_folder_refuses_to_resume_or_serve_other_settings(tmp_path):
+    run_dir = tmp_path / "train-run"
+    runs.train(compose_config("train", ["dataset=contactnets_cube", "model=sysid", "budget=smoke"], tmp_path), run_dir)
+    changed = ["dataset=contactnets_cube", "model=sysid", "budget=smoke", "model.module.position_exponent=1"]
+    with pytest.raises(ContactbenchError, match="other settings.*resume=false"):
+        runs.train(compose_config("train", changed, tmp_path), run_dir)
+    with pytest.raises(ContactbenchError, match="cannot score the model of"):
+        runs.evaluate(compose_config("evaluate", [*changed, f"train_dir={run_dir}", "split=val"], tmp_path), tmp_path / "eval")
+
+
+def test_models_never_see_the_test_split_or_the_generator(tmp_path, monkeypatch):
+    seen = []
+    from contactbench.models.analytical import MujocoContactModel
+
+    original_fit, original_rollout = MujocoContactModel.fit, MujocoContactModel.rollout
+    monkeypatch.setattr(MujocoContactModel, "fit", lambda self, dataset: seen.append(("fit", sorted(dataset.splits), "generator" in dataset.meta)) or original_fit(self, dataset))
+    monkeypatch.setattr(MujocoContactModel, "rollout", lambda self, dataset, context: seen.append(("rollout", sorted(dataset.splits), "generator" in dataset.meta)) or original_rollout(self, dataset, context))
+    runs.train(compose_config("train", ["dataset=contactnets_cube", "model=mujoco_default", "test=true"], tmp_path), tmp_path / "run")
+    assert seen == [("fit", ["train", "val"], False), ("rollout", [], False), ("rollout", [], False)]

@@ -143,3 +143,23 @@ def test_copy_of_real_data_in_a_new_place_reads(tmp_path):
     shutil.copytree(REAL_CUBE, tmp_path / "cube")
     dataset = read_recordings(tmp_path / "cube", ["val"])
     assert list(dataset.splits) == ["val"]
+
+
+def test_writer_refuses_what_the_reader_would_reject(tmp_path, small_recordings):
+    small_recordings.splits["train"].lengths = small_recordings.splits["train"].lengths.astype(float)
+    with pytest.raises(RecordingsError, match="'lengths' has dtype float64"):
+        write_recordings(tmp_path / "a", small_recordings)
+    no_mesh = falling_cubes()
+    no_mesh.meshes.clear()
+    with pytest.raises(RecordingsError, match="no mesh given for 'meshes/cube.obj'"):
+        write_recordings(tmp_path / "b", no_mesh)
+
+
+def test_select_trims_per_frame_extras_with_the_poses():
+    dataset = falling_cubes(n_trajectories=3, n_frames=8)
+    split = dataset.splits["train"]
+    split.extras["contact_normal_force"] = np.zeros((3, 8, 1, 3))
+    split.lengths[:] = [8, 5, 4]
+    chosen = split.select([1, 2])
+    assert chosen.poses.shape[:2] == (2, 5) and chosen.extras["contact_normal_force"].shape == (2, 5, 1, 3)
+    assert chosen.extras["source_index"].tolist() == [1, 2]

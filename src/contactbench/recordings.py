@@ -58,12 +58,17 @@ class Split:
         indices = np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices, dtype=np.int64)
         lengths = self.lengths[indices]
         horizon = int(lengths.max()) if len(lengths) else 0
-        extras = {
-            name: value[indices] if value.ndim and value.shape[0] == self.n_trajectories else value
-            for name, value in self.extras.items()
-        }
+        extras = {name: self._select_extra(value, indices, horizon) for name, value in self.extras.items()}
         velocities = None if self.velocities is None else self.velocities[indices, :horizon]
         return Split(self.poses[indices, :horizon], lengths, velocities, extras)
+
+    def _select_extra(self, value: np.ndarray, indices: np.ndarray, horizon: int) -> np.ndarray:
+        """Per-frame extras ([N, T, ...]) follow poses; per-trajectory ones ([N, ...]) follow lengths; others stay."""
+        if value.shape[:2] == self.poses.shape[:2]:
+            return value[indices, :horizon]
+        if value.shape[:1] == (self.n_trajectories,):
+            return value[indices]
+        return value
 
     def arrays(self) -> dict[str, np.ndarray]:
         arrays = dict(self.extras)
@@ -137,11 +142,11 @@ class Recordings:
             raise RecordingsError(f"{where}: split {name!r} not loaded (available: {sorted(self.splits)})")
         return self.splits[name]
 
-    def without_generator(self) -> "Recordings":
-        """The same recordings with meta.generator removed (what a blind diagnosis may see)."""
+    def for_models(self, splits: Iterable[str] = ()) -> "Recordings":
+        """What a model may see: only the named splits, and no meta.generator (the hidden simulation parameters)."""
         meta = copy.deepcopy(self.meta)
         meta.pop("generator", None)
-        return replace(self, meta=meta)
+        return replace(self, meta=meta, splits={name: self.split(name) for name in splits})
 
 # ---------------------------------------------------------------- validation
 
@@ -211,6 +216,8 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
     if n == 0 or horizon == 0:
         raise _fail(where, f"field 'poses' has shape {poses.shape} (expected at least one trajectory and one frame)")
     lengths = split.lengths
+    if not np.issubdtype(lengths.dtype, np.integer):
+        raise _fail(where, f"field 'lengths' has dtype {lengths.dtype} (expected int64)")
     if lengths.shape != (n,):
         raise _fail(where, f"field 'lengths' has shape {lengths.shape} (expected [{n}], one per trajectory)")
     bad = np.flatnonzero((lengths < 1) | (lengths > horizon))
@@ -313,6 +320,9 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
     root = Path(root)
     meta = copy.deepcopy(recordings.meta)
     validate_meta(meta, f"{root / 'meta.json'} (being written)")
+    missing = sorted({body["mesh"] for body in meta["bodies"]} - set(recordings.meshes))
+    if missing:
+        raise RecordingsError(f"{root / 'meta.json'} (being written): no mesh given for {missing[0]!r} (meta.json bodies[].mesh)")
     for name, split in recordings.splits.items():
         if name not in meta["splits"]:
             raise RecordingsError(f"{root / 'meta.json'} (being written): split {name!r} not listed in 'splits'")

@@ -8,9 +8,10 @@ from pathlib import Path
 import pytorch_lightning as pl
 import torch
 from hydra.utils import get_class, instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from contactbench import atomic, tracking
+from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
 from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings
@@ -60,6 +61,26 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
 # ---------------------------------------------------------------- models
 
 
+def run_signature(cfg: DictConfig) -> dict:
+    """What makes a fitted model what it is; a run folder only resumes or serves a model with the same signature."""
+    return {
+        "model": OmegaConf.to_container(cfg.model, resolve=True),
+        "dataset": str(cfg.dataset.path),
+        "context_frames": int(cfg.context_frames),
+        "seed": int(cfg.seed),
+    }
+
+
+def _check_signature(cfg: DictConfig, run_dir: Path, action: str) -> None:
+    recorded = run_dir / "signature.json"
+    if recorded.is_file() and json.loads(recorded.read_text()) != json.loads(json.dumps(run_signature(cfg))):
+        raise ContactbenchError(
+            f"{recorded}: the run there was made with other settings (model, budget, dataset, context_frames or seed) "
+            f"than this command; cannot {action} it. Use another folder (hydra.run.dir=...)"
+            + (" or resume=false to start over" if action == "resume" else "")
+        )
+
+
 def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
     kind = cfg.model.kind
     if kind == "analytical":
@@ -68,7 +89,7 @@ def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> Cont
         return model
     if kind == "lightning":
         return _fit_lightning(cfg, dataset, output_dir, logger)
-    raise ValueError(f"model.kind must be 'analytical' or 'lightning', got {kind!r}")
+    raise ContactbenchError(f"model.kind must be 'analytical' or 'lightning', got {kind!r}")
 
 
 def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
@@ -87,7 +108,9 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     last = checkpoint_dir / "last.ckpt"
     resume_from = str(last) if cfg.resume and last.exists() else None
     if resume_from:
+        _check_signature(cfg, output_dir, "resume")
         log.info("resuming from %s", resume_from)
+    atomic.write_json(output_dir / "signature.json", run_signature(cfg))
     trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     checkpoint = Path(best_path).name if best_path else "last.ckpt"
@@ -116,8 +139,9 @@ def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> Contac
     record = Path(train_dir) / "fitted.json"
     if not record.is_file():
         raise FileNotFoundError(f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget first")
+    _check_signature(cfg, Path(train_dir), "score the model of")
     checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
-    return _load_module(cfg, dataset, checkpoint).to_contact_model()
+    return _load_module(cfg, dataset.for_models(), checkpoint).to_contact_model()
 
 
 # ---------------------------------------------------------------- entry points
@@ -145,7 +169,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
-        model = _fit(cfg, dataset, output_dir, logger)
+        model = _fit(cfg, dataset.for_models(["train", "val"]), output_dir, logger)
         results = {"val": _score_and_write(cfg, model, dataset, "val", output_dir / "val", logger)}
         if cfg.test:
             results["test"] = _score_and_write(cfg, model, dataset, "test", output_dir / "test", logger)

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from contactbench import atomic
+from contactbench.errors import ContactbenchError
 
 COLUMNS = [
     ("model", "model", "{}"),
@@ -23,7 +24,13 @@ MILLIMETRES = {"floor_penetration_m", "interbody_penetration_m"}
 
 
 def collect(root: Path) -> list[dict]:
-    rows = [json.loads(path.read_text()) for path in sorted(Path(root).rglob("metrics.json"))]
+    rows = []
+    for path in sorted(Path(root).rglob("metrics.json")):
+        row = json.loads(path.read_text())
+        missing = [key for key, _, _ in COLUMNS if key not in row]
+        if missing:
+            raise ContactbenchError(f"{path}: field {missing[0]!r} missing (not a metrics.json written by evaluate.py/train.py)")
+        rows.append(row)
     return sorted(rows, key=lambda r: (r["dataset"], r["variant"], r["split"], r["model"]))
 
 
@@ -43,7 +50,7 @@ def markdown_table(rows: list[dict]) -> str:
 def write_report(root: Path) -> Path:
     rows = collect(root)
     if not rows:
-        raise FileNotFoundError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
+        raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
     path = Path(root) / "results.md"
     atomic.write_text(path, f"# Results under {root}\n\nEvery metrics.json below this folder ({len(rows)}).\n\n" + markdown_table(rows))
     return path
@@ -52,7 +59,10 @@ def write_report(root: Path) -> Path:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("root", type=Path, help="a run or multirun folder")
-    path = write_report(parser.parse_args().root)
+    try:
+        path = write_report(parser.parse_args().root)
+    except ContactbenchError as error:
+        raise SystemExit(f"error: {error}") from None
     print(path.read_text())
     print(f"report: {path}")
 

@@ -34,7 +34,7 @@ def score_model(model: ContactModel, dataset: Recordings, split: str, context_fr
     recorded = dataset.split(split)
     context = make_context(recorded, dataset.dt, context_frames)
     started = time.perf_counter()
-    predicted = model.rollout(dataset, context)
+    predicted = model.rollout(dataset.for_models(), context)
     elapsed = time.perf_counter() - started
     expected = (recorded.n_trajectories, context.horizon, dataset.n_bodies, 7)
     if predicted.shape != expected:

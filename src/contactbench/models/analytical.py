@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from contactbench.errors import ContactbenchError
 from contactbench.models.base import ContactModel, Context
 from contactbench.recordings import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters
@@ -19,7 +20,7 @@ def preset_parameters(preset: str, n_bodies: int) -> ContactParameters:
     if preset == "mujoco_default":
         return ContactParameters.mujoco_default(n_bodies)
     if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; known: mujoco_default, {', '.join(sorted(PRESETS))}")
+        raise ContactbenchError(f"unknown preset {preset!r}; known: mujoco_default, {', '.join(sorted(PRESETS))}")
     values = dict(PRESETS[preset])
     return ContactParameters(object_friction=(values.pop("object_friction"),) * n_bodies, **values)
 

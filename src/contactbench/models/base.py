@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from contactbench.errors import ContactbenchError
 from contactbench.kinematics import estimate_velocities
 from contactbench.recordings import Recordings, Split
 
@@ -31,10 +32,10 @@ class Context:
 def make_context(split: Split, dt: float, context_frames: int) -> Context:
     """The shared protocol: the first `context_frames` frames, with velocities given or estimated."""
     if context_frames < 2:
-        raise ValueError(f"context_frames must be at least 2 to define a velocity, got {context_frames}")
+        raise ContactbenchError(f"context_frames must be at least 2 to define a velocity, got {context_frames}")
     if split.lengths.min() <= context_frames:
         short = int(np.argmin(split.lengths))
-        raise ValueError(
+        raise ContactbenchError(
             f"trajectory {short} has {split.lengths[short]} frames; the protocol needs more than context_frames={context_frames}"
         )
     poses = split.poses[:, :context_frames]

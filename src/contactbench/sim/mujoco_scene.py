@@ -34,6 +34,7 @@ import mujoco
 import numpy as np
 
 from contactbench import rotations
+from contactbench.errors import ContactbenchError
 from contactbench.recordings import Recordings
 
 MUJOCO_DEFAULT_SOLREF = (0.02, 1.0)  # time constant (s), damping ratio: MuJoCo's default for every contact
@@ -61,12 +62,12 @@ class ContactParameters:
                 value = float(value)
             object.__setattr__(self, item.name, value)
         if (self.floor_stiffness is None) != (self.floor_damping is None):
-            raise ValueError("floor_stiffness and floor_damping are given together or not at all")
+            raise ContactbenchError("floor_stiffness and floor_damping are given together or not at all")
         frictions = self.object_friction + (self.floor_friction, self.torsional_friction, self.rolling_friction)
         if not all(np.isfinite(frictions)) or min(frictions) < 0:
-            raise ValueError(f"friction coefficients must be finite and non-negative, got {self}")
+            raise ContactbenchError(f"friction coefficients must be finite and non-negative, got {self}")
         if self.floor_stiffness is not None and not (self.floor_stiffness > 0 and self.floor_damping >= 0):
-            raise ValueError(f"floor stiffness must be positive and damping non-negative, got {self}")
+            raise ContactbenchError(f"floor stiffness must be positive and damping non-negative, got {self}")
 
     @classmethod
     def mujoco_default(cls, n_bodies: int) -> "ContactParameters":
@@ -96,9 +97,9 @@ def _numbers(values) -> str:
 def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1) -> str:
     """The MJCF text of the dataset's scene with the given contact parameters (see the module docstring)."""
     if len(params.object_friction) != dataset.n_bodies:
-        raise ValueError(f"{len(params.object_friction)} object frictions for a scene of {dataset.n_bodies} bodies")
+        raise ContactbenchError(f"{len(params.object_friction)} object frictions for a scene of {dataset.n_bodies} bodies")
     if substeps < 1:
-        raise ValueError(f"substeps must be a positive integer, got {substeps}")
+        raise ContactbenchError(f"substeps must be a positive integer, got {substeps}")
     mesh_names = {path: f"mesh{i}" for i, path in enumerate(dict.fromkeys(b.mesh for b in dataset.bodies))}
     spin_roll = (params.torsional_friction, params.rolling_friction)
     assets = [

@@ -54,7 +54,12 @@ class SimulationResult:
 
     poses: np.ndarray  # [B, N, T, K, 7] recordings poses; NaN from the frame where MuJoCo diverged and reset
     qvel: np.ndarray  # [B, N, T, K, 6] MuJoCo free-joint velocities: world linear (mesh-frame origin), BODY angular
-    unstable: np.ndarray  # [B, N] diverged (MuJoCo reset), gained energy (see ENERGY_GAIN) or fell through the floor
+    unstable_frames: np.ndarray  # [B, N, T] diverged (MuJoCo reset), gained energy (ENERGY_GAIN) or fell through the floor
+
+    @property
+    def unstable(self) -> np.ndarray:
+        """[B, N] items unstable at any frame."""
+        return self.unstable_frames.any(axis=-1)
 
     @cached_property
     def velocities(self) -> np.ndarray:
@@ -80,6 +85,7 @@ class MujocoRollouts:
         if self.nstate != 1 + reference.nq + reference.nv:
             raise ValueError(f"scene has {self.nstate - 1 - reference.nq - reference.nv} unexpected state entries (act/plugin)")
         self._data = [mujoco.MjData(reference) for _ in range(self.nthread)]
+        self._persistent_pool = True
         # A body whose frame origin is lower than this under the floor has no vertex above it.
         self._sunk_depth = np.array(
             [np.linalg.norm(dataset.body_mesh(k).vertices, axis=1).max() for k in range(dataset.n_bodies)]
@@ -88,6 +94,8 @@ class MujocoRollouts:
     def renew_data(self) -> None:
         """Fresh MjData for every thread (after a timed-out call, whose native threads may still hold the old ones)."""
         self._data = [mujoco.MjData(self._data[0].model) for _ in range(self.nthread)]
+        # The shared persistent pool may still be busy with the abandoned call: use fresh threads from now on.
+        self._persistent_pool = False
 
     def model(self, params: ContactParameters) -> mujoco.MjModel:
         """The compiled scene for `params`, cached (least recently used go first) for repeated parameter sets."""
@@ -133,7 +141,7 @@ class MujocoRollouts:
                 np.tile(initial, (len(models), 1)),
                 nstep=n_substeps,
                 state=states,
-                persistent_pool=True,
+                persistent_pool=self._persistent_pool,
             )
         frames = states[:, self.substeps - 1 :: self.substeps]
         if self.substeps > 1:  # keep the returned frames, not every substep, alive
@@ -151,7 +159,7 @@ class MujocoRollouts:
             # MuJoCo resets on NaN or |x| > 1e10, so non-finite energy only flags the frames set to NaN above.
             gained = ~(energy <= self._allowed_energy(poses0, velocities0)[:, None])
             sunk = (poses[..., 2] < self.dataset.floor_z - self._sunk_depth).any(axis=-1)
-        return SimulationResult(poses, qvel, (diverged | gained | sunk).any(axis=-1))
+        return SimulationResult(poses, qvel, np.maximum.accumulate(diverged | gained | sunk, axis=-1))
 
     def _allowed_energy(self, poses0: np.ndarray, velocities0: np.ndarray) -> np.ndarray:
         initial = mechanical_energy(self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64))
@@ -167,7 +175,7 @@ class MujocoRollouts:
         return SimulationResult(
             np.concatenate([np.broadcast_to(context.poses, leading + context.poses.shape), result.poses], axis=2),
             np.concatenate([np.broadcast_to(context_qvel, leading + context_qvel.shape), result.qvel], axis=2),
-            result.unstable,
+            np.concatenate([np.zeros(leading + context.poses.shape[:2], dtype=bool), result.unstable_frames], axis=2),
         )
 
 

@@ -29,7 +29,7 @@ class SysIDDataModule(pl.LightningDataModule):
     from its own checkpointed counters, so a resumed run draws exactly what an uninterrupted one would."""
 
     def __init__(self, dataset: Recordings, context_frames: int, generations: int):
-        super().__init__()
+        super().__init__()  # dataset and context_frames: the runner's common signature; the search holds both
         self.generations = int(generations)
 
     def train_dataloader(self) -> DataLoader:
@@ -67,10 +67,6 @@ class SysIDModule(pl.LightningModule):
     @property
     def generations_per_restart(self) -> int:
         return -(-self.hparams.evaluations // self.hparams.num_workers)
-
-    @property
-    def total_generations(self) -> int:
-        return self.generations_per_restart * self.hparams.restarts
 
     def configure_optimizers(self):
         return None
@@ -110,7 +106,7 @@ class NevergradSearch(pl.Callback):
         self.generation = 0  # within the current restart
         self.evaluations = 0
         self.unstable = 0
-        self.results: list[dict] = []  # per finished restart: vector, val_loss, best_train_loss
+        self.results: list[dict] = []  # per finished restart: its recommended parameter vector and val loss
 
     # ------------------------------------------------------------ lifecycle
 

@@ -67,7 +67,9 @@ class ConfigurationObjective:
             errors = configuration_error(self.truth[indices, :horizon], result.poses, self.widths, self.position_exponent)  # [B, n, T]
             per_trajectory = np.where(mask, errors, 0.0).sum(axis=-1) / mask.sum(axis=-1)
             losses = per_trajectory.mean(axis=-1)
-        unstable = result.unstable.any(axis=-1) | ~np.isfinite(losses)
+        # Frames past a trajectory's end are simulated (the batch shares one horizon) but never scored: a candidate
+        # is unstable only where it is judged.
+        unstable = (result.unstable_frames & mask).any(axis=(-1, -2)) | ~np.isfinite(losses)
         losses = np.where(unstable, self.unstable_penalty, np.minimum(losses, self.unstable_penalty))
         return Evaluation(losses, unstable)
 
