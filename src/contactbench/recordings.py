@@ -1,4 +1,5 @@
 """The one reader, validator and writer of the recordings format (shared/RECORDINGS.md, version 1)."""
+
 from __future__ import annotations
 
 import copy
@@ -20,8 +21,10 @@ FORMAT = "rigid-contact-recordings"
 VERSION = 1
 QUATERNION_TOLERANCE = 1e-3
 
+
 class RecordingsError(ContactbenchError):
     """A dataset that does not follow the recordings format; the message names file, field and place."""
+
 
 @dataclass(frozen=True)
 class Body:
@@ -29,6 +32,7 @@ class Body:
     mesh: str  # OBJ path relative to the dataset folder
     mass: float  # kg
     inertia_diagonal: tuple[float, float, float] | None  # kg m^2 about axes through the CoM parallel to the mesh frame
+
 
 @dataclass
 class Split:
@@ -78,6 +82,7 @@ class Split:
             arrays["velocities"] = self.velocities
         return arrays
 
+
 @dataclass
 class Recordings:
     meta: dict  # meta.json as read; unknown keys are kept and written back
@@ -112,7 +117,9 @@ class Recordings:
                 name=entry["name"],
                 mesh=entry["mesh"],
                 mass=float(entry["mass"]),
-                inertia_diagonal=tuple(float(x) for x in entry["inertia_diagonal"]) if "inertia_diagonal" in entry else None,
+                inertia_diagonal=tuple(float(x) for x in entry["inertia_diagonal"])
+                if "inertia_diagonal" in entry
+                else None,
             )
             for entry in self.meta["bodies"]
         ]
@@ -148,10 +155,13 @@ class Recordings:
         meta.pop("generator", None)
         return replace(self, meta=meta, splits={name: self.split(name) for name in splits})
 
+
 # ---------------------------------------------------------------- validation
+
 
 def _fail(where: str, message: str) -> RecordingsError:
     return RecordingsError(f"{where}: {message}")
+
 
 def _require(meta: Mapping, key: str, types: type | tuple[type, ...], where: str, expected: str):
     if key not in meta:
@@ -160,6 +170,7 @@ def _require(meta: Mapping, key: str, types: type | tuple[type, ...], where: str
     if isinstance(value, bool) or not isinstance(value, types):
         raise _fail(where, f"field '{key}' is {value!r} (expected {expected})")
     return value
+
 
 def _vector(meta: Mapping, key: str, size: int, where: str) -> list[float]:
     value = meta[key]
@@ -171,13 +182,17 @@ def _vector(meta: Mapping, key: str, size: int, where: str) -> list[float]:
         raise _fail(where, f"field '{key}' is {value!r} (expected a list of {size} finite numbers)")
     return value
 
+
 def validate_meta(meta: object, where: str) -> None:
     if not isinstance(meta, dict):
         raise _fail(where, "expected a JSON object")
     if meta.get("format") != FORMAT:
         raise _fail(where, f"field 'format' is {meta.get('format')!r} (expected {FORMAT!r})")
     if meta.get("version") != VERSION or isinstance(meta.get("version"), bool):
-        raise _fail(where, f"field 'version' is {meta.get('version')!r} (expected {VERSION}; this reader knows version {VERSION} only)")
+        raise _fail(
+            where,
+            f"field 'version' is {meta.get('version')!r} (expected {VERSION}; this reader knows version {VERSION} only)",
+        )
     _require(meta, "name", str, where, "a string")
     dt = _require(meta, "dt", (int, float), where, "seconds between frames, a positive number")
     if not (np.isfinite(dt) and dt > 0):
@@ -208,10 +223,14 @@ def validate_meta(meta: object, where: str) -> None:
     if not splits or not all(isinstance(v, str) for v in splits.values()):
         raise _fail(where, f"field 'splits' is {splits!r} (expected split name -> npz file path)")
 
+
 def validate_split(split: Split, n_bodies: int, where: str) -> None:
     poses = split.poses
     if poses.ndim != 4 or poses.shape[2] != n_bodies or poses.shape[3] != 7:
-        raise _fail(where, f"field 'poses' has shape {poses.shape} (expected [N, T, K={n_bodies}, 7] for the {n_bodies} bodies in meta.json)")
+        raise _fail(
+            where,
+            f"field 'poses' has shape {poses.shape} (expected [N, T, K={n_bodies}, 7] for the {n_bodies} bodies in meta.json)",
+        )
     n, horizon = poses.shape[:2]
     if n == 0 or horizon == 0:
         raise _fail(where, f"field 'poses' has shape {poses.shape} (expected at least one trajectory and one frame)")
@@ -229,18 +248,29 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
     off = valid[..., None] & (np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
     if off.any():
         t_n, t_t, t_k = np.argwhere(off)[0]
-        raise _fail(where, f"field 'poses': trajectory {t_n}, frame {t_t}, body {t_k}: quaternion norm {norms[t_n, t_t, t_k]:.6f} (expected a unit quaternion within {QUATERNION_TOLERANCE})")
+        raise _fail(
+            where,
+            f"field 'poses': trajectory {t_n}, frame {t_t}, body {t_k}: quaternion norm {norms[t_n, t_t, t_k]:.6f} (expected a unit quaternion within {QUATERNION_TOLERANCE})",
+        )
     if split.velocities is not None:
         velocities = split.velocities
         if velocities.shape != poses.shape[:3] + (6,):
-            raise _fail(where, f"field 'velocities' has shape {velocities.shape} (expected {poses.shape[:3] + (6,)}, like poses with 6 components)")
+            raise _fail(
+                where,
+                f"field 'velocities' has shape {velocities.shape} (expected {poses.shape[:3] + (6,)}, like poses with 6 components)",
+            )
         _check_finite(velocities, valid, "velocities", where)
+
 
 def _check_finite(array: np.ndarray, valid: np.ndarray, name: str, where: str) -> None:
     bad = valid[..., None, None] & ~np.isfinite(array)
     if bad.any():
         t_n, t_t, t_k = np.argwhere(bad)[0][:3]
-        raise _fail(where, f"field '{name}': trajectory {t_n}, frame {t_t}, body {t_k}: NaN or infinite value inside the valid frames")
+        raise _fail(
+            where,
+            f"field '{name}': trajectory {t_n}, frame {t_t}, body {t_k}: NaN or infinite value inside the valid frames",
+        )
+
 
 def _float_array(archive, name: str, where: str) -> np.ndarray:
     array = archive[name]
@@ -248,7 +278,9 @@ def _float_array(archive, name: str, where: str) -> np.ndarray:
         raise _fail(where, f"field '{name}' has dtype {array.dtype} (expected float64)")
     return array.astype(np.float64, copy=False)
 
+
 # ---------------------------------------------------------------- reading
+
 
 def read_meta(root: str | os.PathLike) -> dict:
     path = Path(root) / "meta.json"
@@ -262,6 +294,7 @@ def read_meta(root: str | os.PathLike) -> dict:
         raise RecordingsError(f"{path}: not valid JSON ({error})") from None
     validate_meta(meta, str(path))
     return meta
+
 
 def read_split(path: Path, n_bodies: int) -> Split:
     where = str(path)
@@ -278,7 +311,9 @@ def read_split(path: Path, n_bodies: int) -> Split:
                     raise _fail(where, f"field 'lengths' has dtype {lengths.dtype} (expected int64)")
                 lengths = lengths.astype(np.int64)
             else:
-                lengths = np.full(poses.shape[0] if poses.ndim else 0, poses.shape[1] if poses.ndim > 1 else 0, dtype=np.int64)
+                lengths = np.full(
+                    poses.shape[0] if poses.ndim else 0, poses.shape[1] if poses.ndim > 1 else 0, dtype=np.int64
+                )
             velocities = _float_array(archive, "velocities", where) if "velocities" in archive.files else None
             extras = {name: archive[name] for name in archive.files if name not in ("poses", "lengths", "velocities")}
     except (zipfile.BadZipFile, OSError, EOFError) as error:
@@ -290,6 +325,7 @@ def read_split(path: Path, n_bodies: int) -> Split:
     split = Split(poses, lengths, velocities, extras)
     validate_split(split, n_bodies, where)
     return split
+
 
 def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None) -> Recordings:
     """Read and validate a dataset folder; `splits` limits which split files are loaded (default: all)."""
@@ -309,11 +345,15 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
     wanted = list(meta["splits"]) if splits is None else list(splits)
     unknown = [name for name in wanted if name not in meta["splits"]]
     if unknown:
-        raise RecordingsError(f"{root / 'meta.json'}: field 'splits' has no split {unknown[0]!r} (it has {sorted(meta['splits'])})")
+        raise RecordingsError(
+            f"{root / 'meta.json'}: field 'splits' has no split {unknown[0]!r} (it has {sorted(meta['splits'])})"
+        )
     loaded = {name: read_split(root / meta["splits"][name], len(meta["bodies"])) for name in wanted}
     return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
 
+
 # ---------------------------------------------------------------- writing
+
 
 def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
     """Validate, then write the whole dataset into a staging folder and swap it into place."""
@@ -322,7 +362,9 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
     validate_meta(meta, f"{root / 'meta.json'} (being written)")
     missing = sorted({body["mesh"] for body in meta["bodies"]} - set(recordings.meshes))
     if missing:
-        raise RecordingsError(f"{root / 'meta.json'} (being written): no mesh given for {missing[0]!r} (meta.json bodies[].mesh)")
+        raise RecordingsError(
+            f"{root / 'meta.json'} (being written): no mesh given for {missing[0]!r} (meta.json bodies[].mesh)"
+        )
     for name, split in recordings.splits.items():
         if name not in meta["splits"]:
             raise RecordingsError(f"{root / 'meta.json'} (being written): split {name!r} not listed in 'splits'")
@@ -336,7 +378,6 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
         atomic.write_json(staging / "meta.json", meta)
         atomic.replace_directory(staging, root)
     except BaseException:
-
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return root

@@ -55,10 +55,10 @@ def _closest_convex_combination(points: np.ndarray, target: np.ndarray, allowed:
     """
     batch, n_points = allowed.shape
     weights = np.zeros((batch, n_points))
-    width = int(allowed.sum(axis=-1).max(initial=0))
+    order = lcp.selected_first(allowed)
+    width = order.shape[1]
     if width == 0:
         return weights
-    order = np.argsort(~allowed, axis=-1, kind="stable")[:, :width]
     singles = [(i, i, i) for i in range(width)]
     pairs = [(i, j, j) for i in range(width) for j in range(i + 1, width)]
     triples = [(i, j, l) for i in range(width) for j in range(i + 1, width) for l in range(j + 1, width)]

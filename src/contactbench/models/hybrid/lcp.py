@@ -16,6 +16,7 @@ M is the Delassus matrix (`dynamics.delassus`), positive semi-definite: on a fac
 give the same body wrench. The body wrench and the post-step velocities are unique (a monotone LCP), the split
 between vertices is not, so the two solvers may share the load between vertices differently.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,8 +29,15 @@ from contactbench.models.hybrid.dynamics import Scene, State
 
 Solver = Literal["pgs", "lemke"]
 
+
 class LCPError(RuntimeError):
     """Lemke's algorithm ended on a secondary ray: the LCP has no solution."""
+
+
+def selected_first(mask: np.ndarray) -> np.ndarray:
+    """Column order [B, W] that brings each row's selected entries first; W is the largest count selected in a row."""
+    width = int(mask.sum(axis=-1).max(initial=0))
+    return np.argsort(~mask, axis=-1, kind="stable")[:, :width]
 
 
 def solve_lemke(matrix: np.ndarray, vector: np.ndarray, max_pivots: int | None = None) -> np.ndarray:
@@ -57,11 +65,17 @@ def solve_lemke(matrix: np.ndarray, vector: np.ndarray, max_pivots: int | None =
         column = tableau[:, entering]
         positive = column > tolerance
         if not positive.any():
-            raise LCPError(f"Lemke's algorithm found a secondary ray after entering variable {entering}; the LCP has no solution")
+            raise LCPError(
+                f"Lemke's algorithm found a secondary ray after entering variable {entering}; the LCP has no solution"
+            )
         ratios = np.where(positive, tableau[:, -1] / np.where(positive, column, 1.0), np.inf)
         ties = ratios <= ratios.min() + tolerance
         # Letting z0 leave whenever it ties ends the algorithm at once with a complementary solution.
-        row = int(np.flatnonzero(ties & (basis == artificial))[0]) if np.any(ties & (basis == artificial)) else int(np.argmax(ties))
+        row = (
+            int(np.flatnonzero(ties & (basis == artificial))[0])
+            if np.any(ties & (basis == artificial))
+            else int(np.argmax(ties))
+        )
         leaving = pivot(row, entering)
         if leaving == artificial:
             solution = np.zeros(2 * n + 1)
@@ -96,7 +110,9 @@ def solve_pgs(matrix: np.ndarray, vector: np.ndarray, tolerance: float = 1e-10, 
     return solution
 
 
-def solve_at_candidates(matrix: np.ndarray, vector: np.ndarray, candidates: np.ndarray, solver: Solver = "pgs") -> np.ndarray:
+def solve_at_candidates(
+    matrix: np.ndarray, vector: np.ndarray, candidates: np.ndarray, solver: Solver = "pgs"
+) -> np.ndarray:
     """Solve LCP(M [B, V, V], q [B, V]) restricted to the candidate entries [B, V]; the others stay zero.
 
     The candidates of each problem are packed into the first columns, so the solver works on the largest candidate
@@ -104,10 +120,10 @@ def solve_at_candidates(matrix: np.ndarray, vector: np.ndarray, candidates: np.n
     """
     batch, n_vertices = vector.shape
     solution = np.zeros((batch, n_vertices))
-    width = int(candidates.sum(axis=-1).max(initial=0))
+    order = selected_first(candidates)
+    width = order.shape[1]
     if width == 0:
         return solution
-    order = np.argsort(~candidates, axis=-1, kind="stable")[:, :width]
     used = np.take_along_axis(candidates, order, axis=-1)
     packed = np.take_along_axis(np.take_along_axis(matrix, order[:, :, None], axis=1), order[:, None, :], axis=2)
     packed_vector = np.take_along_axis(vector, order, axis=-1)
@@ -135,10 +151,14 @@ class ContactSettings:
     solver: Solver = "pgs"
 
 
-def contact_candidates(state: State, scene: Scene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings) -> np.ndarray:
+def contact_candidates(
+    state: State, scene: Scene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings
+) -> np.ndarray:
     """Vertices [..., V] whose gap after a step at the given velocities would be under the contact margin."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
-    predicted_gaps = dynamics.vertex_gaps(state, scene) + scene.dt * dynamics.normal_velocities(offsets, linear, angular)
+    predicted_gaps = dynamics.vertex_gaps(state, scene) + scene.dt * dynamics.normal_velocities(
+        offsets, linear, angular
+    )
     return predicted_gaps < settings.contact_margin * scene.body.width
 
 
@@ -148,7 +168,9 @@ def in_contact(state: State, scene: Scene, settings: ContactSettings) -> np.ndar
     return contact_candidates(state, scene, linear, angular, settings).any(axis=-1)
 
 
-def normal_impulses(state: State, scene: Scene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings) -> np.ndarray:
+def normal_impulses(
+    state: State, scene: Scene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings
+) -> np.ndarray:
     """Frictionless normal impulses [B, V] for bodies [B] whose velocities before contact are `linear`, `angular`."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
     gaps = dynamics.vertex_gaps(state, scene)
@@ -173,13 +195,19 @@ def dissipative_friction(state: State, scene: Scene, friction_impulse: np.ndarra
     """
     linear, angular = dynamics.unconstrained_velocities(state, scene)
     linear_change, angular_change = dynamics.velocity_change(state.orientation, friction_impulse, scene.body)
-    braking = -(np.sum(friction_impulse[..., :3] * linear, axis=-1) + np.sum(friction_impulse[..., 3:] * angular, axis=-1))
-    curvature = np.sum(friction_impulse[..., :3] * linear_change, axis=-1) + np.sum(friction_impulse[..., 3:] * angular_change, axis=-1)
+    braking = -(
+        np.sum(friction_impulse[..., :3] * linear, axis=-1) + np.sum(friction_impulse[..., 3:] * angular, axis=-1)
+    )
+    curvature = np.sum(friction_impulse[..., :3] * linear_change, axis=-1) + np.sum(
+        friction_impulse[..., 3:] * angular_change, axis=-1
+    )
     scale = np.clip(braking / np.where(curvature > 0, curvature, np.inf), 0.0, 1.0)
     return friction_impulse * scale[..., None]
 
 
-def frictionless_step(state: State, scene: Scene, friction_impulse: np.ndarray, settings: ContactSettings) -> tuple[State, np.ndarray]:
+def frictionless_step(
+    state: State, scene: Scene, friction_impulse: np.ndarray, settings: ContactSettings
+) -> tuple[State, np.ndarray]:
     """One step of bodies [B]: gravity and the given friction impulses [B, 6], then the LCP's normal impulses, then integration.
 
     Returns the next states and the normal impulses [B, V].
@@ -189,5 +217,7 @@ def frictionless_step(state: State, scene: Scene, friction_impulse: np.ndarray, 
     linear, angular = linear + friction_linear, angular + friction_angular
     impulses = normal_impulses(state, scene, linear, angular, settings)
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
-    contact_linear, contact_angular = dynamics.velocity_change(state.orientation, dynamics.normal_wrench(offsets, impulses), scene.body)
+    contact_linear, contact_angular = dynamics.velocity_change(
+        state.orientation, dynamics.normal_wrench(offsets, impulses), scene.body
+    )
     return dynamics.integrate(state, linear + contact_linear, angular + contact_angular, scene.dt), impulses
