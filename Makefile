@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN = $(VENV)/bin
 
-.PHONY: main test benchmarks
+.PHONY: main test benchmarks matrix
 
 # The embedded default: one generated variant and the real cube, every model at budget=quick, scored on val and
 # test, then one results table.
@@ -12,6 +12,17 @@ main: $(VENV)/.installed
 	$(BIN)/python generate.py variant=frictioncubes_0.5
 	$(BIN)/python train.py -m model=$(MAIN_MODELS) variant=frictioncubes_0.5,contactnets_cube budget=quick test=true hydra.sweep.dir=outputs/main
 	$(BIN)/python -m contactbench.evaluation.report outputs/main
+
+# The whole benchmark at one budget: {mujoco_default, sysid, gnn, hybrid} x 22 synthetic variants + the real cube,
+# scored on val and test, then the report. The hybrid model skips multi-body variants with one line each.
+# `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep to a Slurm cluster.
+BUDGET ?= quick
+ARGS ?=
+MATRIX_MODELS = mujoco_default,sysid,gnn,hybrid
+matrix: $(VENV)/.installed
+	$(BIN)/python generate.py -m 'variant=glob(*)'
+	$(BIN)/python train.py -m model=$(MATRIX_MODELS) 'variant=glob(*)' budget=$(BUDGET) test=true hydra.sweep.dir=outputs/matrix/$(BUDGET) $(ARGS)
+	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/$(BUDGET)
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import html
 import json
 from pathlib import Path
 
 from contactbench import atomic
 from contactbench.errors import ContactbenchError
+from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, draw_all
 
 COLUMNS = [
     ("model", "model", "{}"),
@@ -47,13 +49,61 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def importance_markdown(table: dict[str, dict[str, str]]) -> str:
+    dimensions = [parameter for parameter, _ in SWEEPS.values()]
+    lines = ["| method | " + " | ".join(dimensions) + " |", "|" + "---|" * (len(dimensions) + 1)]
+    lines += [f"| {model} | " + " | ".join(verdicts.get(d, "N/A") for d in dimensions) + " |" for model, verdicts in sorted(table.items())]
+    return "\n".join(lines) + "\n"
+
+
 def write_report(root: Path) -> Path:
+    """results.md and results.html in root: the results table, the paper's figures that the runs allow, Table 3."""
+    root = Path(root)
     rows = collect(root)
     if not rows:
         raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
-    path = Path(root) / "results.md"
-    atomic.write_text(path, f"# Results under {root}\n\nEvery metrics.json below this folder ({len(rows)}).\n\n" + markdown_table(rows))
-    return path
+    figures, importance = draw_all(root, root / "figures")
+    sections = [
+        f"# Results under {root}\n\nEvery metrics.json below this folder ({len(rows)}); figures from the test split.\n",
+        markdown_table(rows),
+        "## Figures\n",
+        *[f"![{path.stem}](figures/{path.name})\n" for path in figures],
+        "## Table 3, recomputed\n",
+        f"'Yes' when a method's mean test position error changes by more than {IMPORTANCE_THRESHOLD:.0%} of its smallest "
+        "value across the dimension's variants; 'N/A' with fewer than two variants.\n",
+        importance_markdown(importance),
+    ]
+    markdown = "\n".join(sections)
+    atomic.write_text(root / "results.md", markdown)
+    atomic.write_text(root / "results.html", _html(markdown))
+    return root / "results.md"
+
+
+def _html(markdown: str) -> str:
+    """A plain HTML rendering of the report's Markdown (headings, tables, images, paragraphs)."""
+    body, in_table = [], False
+    for line in markdown.split("\n"):
+        if line.startswith("|") and not in_table:
+            body.append("<table border=1 cellspacing=0>")
+            in_table = True
+        elif not line.startswith("|") and in_table:
+            body.append("</table>")
+            in_table = False
+        if line.startswith("|---"):
+            continue
+        if line.startswith("|"):
+            body.append("<tr>" + "".join(f"<td>{html.escape(cell.strip())}</td>" for cell in line.strip("|").split("|")) + "</tr>")
+        elif line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            body.append(f"<h{level}>{html.escape(line.lstrip('# '))}</h{level}>")
+        elif line.startswith("!["):
+            body.append(f'<p><img src="{html.escape(line[line.index("(") + 1 : line.index(")")])}" style="max-width:100%"></p>')
+        elif line.strip():
+            body.append(f"<p>{html.escape(line)}</p>")
+    if in_table:
+        body.append("</table>")
+    text = "\n".join(body)
+    return f"<!doctype html>\n<html><head><meta charset='utf-8'><title>contactbench results</title></head><body>\n{text}\n</body></html>\n"
 
 
 def main() -> None:

@@ -1,0 +1,146 @@
+"""The paper's figures (1, 2, 3, 5, 7a-c) and Table 3, drawn from the metrics.json / per_trajectory.csv of test runs."""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display on CI or a cluster node
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+# dataset -> (varied parameter, figure title as in the paper)
+SWEEPS = {
+    "bouncycubes": ("restitution", "Fig. 1: effect of restitution (BOUNCYCUBES)"),
+    "frictioncubes": ("friction", "Fig. 2: effect of friction (FRICTIONCUBES)"),
+    "polyhedra": ("faces", "Fig. 3: effect of geometry (POLYHEDRA)"),
+    "multicubes": ("bodies", "Fig. 5: effect of the number of bodies (MULTICUBES)"),
+}
+PANELS = [("pos_err", "position error (widths)"), ("rot_err_rad", "rotation error (rad)"), ("floor_penetration_m", "floor penetration (m)")]
+# Table 3's rule: a dimension matters for a method when its mean test position error moves by more than this
+# fraction of its smallest value across the dimension's variants.
+IMPORTANCE_THRESHOLD = 0.25
+
+
+@dataclass
+class Run:
+    summary: dict  # metrics.json
+    per_trajectory: dict[str, np.ndarray]  # per_trajectory.csv columns
+
+    @property
+    def value(self) -> float:
+        """The varied parameter's value, read from the variant name (e.g. 'friction=0.25')."""
+        return float(self.summary["variant"].split("=", 1)[1])
+
+
+def load_test_runs(root: Path) -> list[Run]:
+    runs = []
+    for path in sorted(Path(root).rglob("metrics.json")):
+        summary = json.loads(path.read_text())
+        if summary.get("split") != "test":
+            continue
+        with open(path.parent / "per_trajectory.csv", newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        columns = {name: np.array([float(row[name]) if row[name] else np.nan for row in rows]) for name in rows[0]}
+        runs.append(Run(summary, columns))
+    return runs
+
+
+def _by_model(runs: list[Run], dataset: str) -> dict[str, list[Run]]:
+    grouped: dict[str, list[Run]] = {}
+    for run in runs:
+        if run.summary["dataset"] == dataset:
+            grouped.setdefault(run.summary["model"], []).append(run)
+    return {model: sorted(group, key=lambda r: r.value) for model, group in sorted(grouped.items())}
+
+
+def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
+    """Mean per method against the varied parameter, with the 25-75% band across test trajectories."""
+    grouped = _by_model(runs, dataset)
+    if not grouped:
+        return None
+    parameter, title = SWEEPS[dataset]
+    figure, axes = plt.subplots(1, len(PANELS), figsize=(4.2 * len(PANELS), 3.4))
+    for axis, (key, label) in zip(axes, PANELS):
+        for model, group in grouped.items():
+            x = [run.value for run in group]
+            axis.plot(x, [run.summary[key] for run in group], marker="o", label=model)
+            low, high = zip(*(np.nanpercentile(run.per_trajectory[key], [25, 75]) for run in group))
+            axis.fill_between(x, low, high, alpha=0.15)
+        axis.set_xlabel(parameter)
+        axis.set_ylabel(label)
+    axes[0].legend(fontsize=8)
+    figure.suptitle(title)
+    return _save(figure, path)
+
+
+def per_frame_figure(runs: list[Run], dataset: str, key: str, label: str, title: str, path: Path, values: list[float] | None = None) -> Path | None:
+    """Per-frame curves (Fig. 7a: inter-body penetration, 7c: lowest vertex height) per method and variant."""
+    chosen = [run for run in runs if run.summary["dataset"] == dataset and key in run.summary["per_frame"]]
+    chosen = [run for run in chosen if values is None or run.value in values]
+    if not chosen:
+        return None
+    figure, axis = plt.subplots(figsize=(6, 3.6))
+    for run in sorted(chosen, key=lambda r: (r.summary["model"], r.value)):
+        curve = np.array([np.nan if v is None else v for v in run.summary["per_frame"][key]], dtype=float)
+        axis.plot(curve, label=f"{run.summary['model']} {run.summary['variant']}")
+    axis.set_xlabel("frame")
+    axis.set_ylabel(label)
+    axis.legend(fontsize=7)
+    axis.set_title(title)
+    return _save(figure, path)
+
+
+def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
+    """Fig. 7b: distribution of distinct touching body pairs per toss in the data, for each number of bodies."""
+    counts = {}
+    for run in runs:
+        if run.summary["dataset"] == "multicubes" and "pairwise_collisions_true" in run.per_trajectory:
+            counts.setdefault(int(run.value), run.per_trajectory["pairwise_collisions_true"])
+    if not counts:
+        return None
+    figure, axis = plt.subplots(figsize=(5, 3.6))
+    bodies = sorted(counts)
+    axis.boxplot([counts[k] for k in bodies], positions=bodies)
+    axis.set_xlabel("bodies K")
+    axis.set_ylabel("pairs that touch per toss")
+    axis.set_title("Fig. 7b: pairwise collisions (ground truth)")
+    return _save(figure, path)
+
+
+def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
+    """Table 3 recomputed: 'Yes' when a method's mean test position error varies across a dimension's variants by
+    more than IMPORTANCE_THRESHOLD of its smallest value, 'No' otherwise, 'N/A' without at least two variants."""
+    table: dict[str, dict[str, str]] = {}
+    for dataset, (parameter, _) in SWEEPS.items():
+        for model, group in _by_model(runs, dataset).items():
+            errors = np.array([run.summary["pos_err"] for run in group], dtype=float)
+            if len(errors) < 2 or not np.all(np.isfinite(errors)):
+                verdict = "N/A"
+            else:
+                verdict = "Yes" if (errors.max() - errors.min()) > IMPORTANCE_THRESHOLD * errors.min() else "No"
+            table.setdefault(model, {})[parameter] = verdict
+    return table
+
+
+def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str, str]]]:
+    runs = load_test_runs(root)
+    drawn = [sweep_figure(runs, dataset, out_dir / f"{dataset}.png") for dataset in SWEEPS]
+    drawn.append(per_frame_figure(runs, "multicubes", "interbody_penetration_m", "max inter-body penetration (m)", "Fig. 7a: inter-body penetration", out_dir / "fig7a_interbody_penetration.png"))
+    drawn.append(pairwise_collisions_figure(runs, out_dir / "fig7b_pairwise_collisions.png"))
+    drawn.append(per_frame_figure(runs, "frictioncubes", "min_vertex_height_m", "lowest vertex height (m)", "Fig. 7c: lowest vertex height, mu = 0 and 1", out_dir / "fig7c_lowest_vertex.png", values=[0.0, 1.0]))
+    return [path for path in drawn if path is not None], importance_table(runs)
+
+
+def _save(figure, path: Path) -> Path:
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial.png")
+    figure.savefig(partial, dpi=110)
+    plt.close(figure)
+    partial.replace(path)
+    return path

@@ -1,0 +1,29 @@
+"""A tiny benchmark matrix (smoke budget, two variants, two models) through the multirun and the report."""
+from __future__ import annotations
+
+import re
+
+from contactbench.evaluation.report import write_report
+from test_pipeline import run_entry_point
+
+
+def test_tiny_matrix_multirun_then_report(tmp_path):
+    result = run_entry_point(
+        "train.py",
+        [
+            "-m", "model=mujoco_default,sysid", "variant=frictioncubes_0,frictioncubes_1", "budget=smoke", "test=true",
+            "generation.split_sizes={train:6,val:4,test:4}", f"hydra.sweep.dir={tmp_path}/sweep",
+        ],
+        tmp_path,
+        timeout=400,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = write_report(tmp_path / "sweep")
+    text = report.read_text()
+    # 2 models x 2 variants x (val, test) rows
+    assert len(re.findall(r"^\| (mujoco_default|sysid) \| frictioncubes", text, flags=re.M)) == 8
+    for figure in ("frictioncubes.png", "fig7c_lowest_vertex.png"):
+        assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
+    table3 = re.findall(r"^\| (mujoco_default|sysid) \| N/A \| (Yes|No) \| N/A \| N/A \|$", text, flags=re.M)
+    assert sorted(model for model, _ in table3) == ["mujoco_default", "sysid"]
+    assert "<table" in (tmp_path / "sweep" / "results.html").read_text()
