@@ -27,3 +27,8 @@ def test_tiny_matrix_multirun_then_report(tmp_path):
     table3 = re.findall(r"^\| (mujoco_default|sysid) \| N/A \| (Yes|No) \| N/A \| N/A \|$", text, flags=re.M)
     assert sorted(model for model, _ in table3) == ["mujoco_default", "sysid"]
     assert "<table" in (tmp_path / "sweep" / "results.html").read_text()
+    # Renders: the models rebuilt from their run folders and rolled out again, drawn headless.
+    final_poses = list((tmp_path / "sweep" / "renders").glob("final_poses_*.png"))
+    assert final_poses and final_poses[0].stat().st_size > 10_000
+    assert next((tmp_path / "sweep" / "renders").glob("rollout_*.gif")).read_bytes()[:6] == b"GIF89a"
+    assert "](renders/final_poses_" in text

@@ -88,6 +88,11 @@ def from_axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(angle / 2), np.sin(angle / 2) * axis], axis=-1)
 
 
+def tilt(about_x: float, about_y: float) -> np.ndarray:
+    """The rotation about world x by about_x, then about world y by about_y (a tilted floor's orientation)."""
+    return multiply(from_axis_angle([0.0, 1.0, 0.0], about_y), from_axis_angle([1.0, 0.0, 0.0], about_x))
+
+
 def from_rotation_vector(rotvec: np.ndarray) -> np.ndarray:
     rotvec = np.asarray(rotvec, dtype=float)
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)

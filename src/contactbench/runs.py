@@ -30,6 +30,12 @@ def generate(cfg: DictConfig) -> Path:
     if cfg.dataset.scene is None:
         log.info("%s is a recorded dataset (%s): nothing to generate", cfg.dataset.name, path)
         return path
+    effects = list(cfg.get("effects") or [])
+    strength = float(cfg.get("effect_strength", 1.0))
+    variant = cfg.dataset.variant
+    if effects:  # a dataset of its own beside the plain variant, same tosses
+        variant = f"{variant},effects={'+'.join(effects)},strength={strength:g}"
+        path = path.with_name(variant)
     if (path / "meta.json").exists() and not cfg.get("overwrite", False):
         try:
             read_meta(path)
@@ -41,11 +47,13 @@ def generate(cfg: DictConfig) -> Path:
     return generate_dataset(
         spec,
         path,
-        variant=cfg.dataset.variant,
+        variant=variant,
         seed=cfg.generation.seed,
         workers=cfg.generation.workers,
         record_contacts=cfg.generation.record_contacts,
         split_sizes=dict(cfg.generation.split_sizes),
+        effects=effects,
+        effect_strength=strength,
     )
 
 
@@ -193,3 +201,20 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     finally:
         tracking.close_logger(logger, status)
     return document
+
+
+def diagnose(cfg: DictConfig, output_dir: Path) -> str:
+    """Diagnose a recordings dataset (never reading meta.generator); writes diagnosis.json and report.md. Returns the verdict."""
+    from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
+    from contactbench.diagnosis.report import summary_sentence, write_diagnosis
+
+    path = Path(cfg.recordings)
+    dataset = read_recordings(path, ["train", "val", "test"]).for_models(["train", "val", "test"])
+    document, arrays = run_diagnosis(
+        dataset, Budget(**cfg.budget.diagnose), Decision(margin=float(cfg.margin)), seed=int(cfg.seed), context_frames=int(cfg.context_frames)
+    )
+    document["recordings"] = str(path)
+    report = write_diagnosis(document, arrays, Path(output_dir))
+    log.info("%s", summary_sentence(document))
+    log.info("report: %s", report)
+    return document["verdict"]

@@ -75,7 +75,7 @@ def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
         axis.set_ylabel(label)
     axes[0].legend(fontsize=8)
     figure.suptitle(title)
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def per_frame_figure(runs: list[Run], dataset: str, key: str, label: str, title: str, path: Path, values: list[float] | None = None) -> Path | None:
@@ -92,7 +92,7 @@ def per_frame_figure(runs: list[Run], dataset: str, key: str, label: str, title:
     axis.set_ylabel(label)
     axis.legend(fontsize=7)
     axis.set_title(title)
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
@@ -109,7 +109,7 @@ def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
     axis.set_xlabel("bodies K")
     axis.set_ylabel("pairs that touch per toss")
     axis.set_title("Fig. 7b: pairwise collisions (ground truth)")
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
@@ -136,7 +136,8 @@ def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str,
     return [path for path in drawn if path is not None], importance_table(runs)
 
 
-def _save(figure, path: Path) -> Path:
+def save_figure(figure, path: Path) -> Path:
+    """Write a figure atomically and close it."""
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial.png")

@@ -9,6 +9,7 @@ from pathlib import Path
 from contactbench import atomic
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, draw_all
+from contactbench.evaluation.renders import render_report
 
 COLUMNS = [
     ("model", "model", "{}"),
@@ -56,13 +57,15 @@ def importance_markdown(table: dict[str, dict[str, str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(root: Path) -> Path:
-    """results.md and results.html in root: the results table, the paper's figures that the runs allow, Table 3."""
+def write_report(root: Path, renders: bool = True) -> Path:
+    """results.md and results.html in root: the results table, the paper's figures that the runs allow, Table 3, and
+    (with renders) final poses of ground truth vs every method and a rollout GIF."""
     root = Path(root)
     rows = collect(root)
     if not rows:
         raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
     figures, importance = draw_all(root, root / "figures")
+    rendered = render_report(root, root / "renders") if renders else []
     sections = [
         f"# Results under {root}\n\nEvery metrics.json below this folder ({len(rows)}); figures from the test split.\n",
         markdown_table(rows),
@@ -72,6 +75,8 @@ def write_report(root: Path) -> Path:
         f"'Yes' when a method's mean test position error changes by more than {IMPORTANCE_THRESHOLD:.0%} of its smallest "
         "value across the dimension's variants; 'N/A' with fewer than two variants.\n",
         importance_markdown(importance),
+        "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
+        *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
     ]
     markdown = "\n".join(sections)
     atomic.write_text(root / "results.md", markdown)
@@ -109,8 +114,10 @@ def _html(markdown: str) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("root", type=Path, help="a run or multirun folder")
+    parser.add_argument("--no-renders", action="store_true", help="skip re-rolling models for the renders")
+    arguments = parser.parse_args()
     try:
-        path = write_report(parser.parse_args().root)
+        path = write_report(arguments.root, renders=not arguments.no_renders)
     except ContactbenchError as error:
         raise SystemExit(f"error: {error}") from None
     print(path.read_text())

@@ -8,6 +8,7 @@ import numpy as np
 import pybullet
 
 from contactbench import rotations
+from contactbench.generation.effects import NONE, ConcealedEffects
 from contactbench.generation.scenes import BulletSettings, SceneSpec
 from contactbench.meshes import Mesh
 
@@ -33,7 +34,7 @@ BODY_DYNAMICS_OVERRIDES = MappingProxyType({
 class BulletScene:
     """A private PyBullet DIRECT world with a floor and `spec.bodies` copies of `mesh`, reusable across tosses."""
 
-    def __init__(self, mesh: Mesh, spec: SceneSpec, settings: BulletSettings = BulletSettings()):
+    def __init__(self, mesh: Mesh, spec: SceneSpec, settings: BulletSettings = BulletSettings(), effects: ConcealedEffects = NONE):
         com, inertia = mesh.mass_properties(settings.mass)
         if np.linalg.norm(com) > 1e-9 * mesh.width:
             raise ValueError(f"mesh frame must sit at the centre of mass; it is off by {com} m")
@@ -41,7 +42,10 @@ class BulletScene:
             raise ValueError("mesh axes must be principal axes of inertia (PyBullet takes a diagonal inertia here)")
         self.spec = spec
         self.settings = settings
+        self.effects = effects
         self.inertia_diagonal = np.diag(inertia).copy()
+        self.com_offset = np.array(effects.com_offset)
+        self.drag_coefficient = 0.5 * effects.fluid_density * mesh.width**2
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self.floor, self.bodies = self._build(mesh)
@@ -60,7 +64,13 @@ class BulletScene:
         )
         pybullet.setGravity(*settings.gravity, physicsClientId=client)
         floor_shape = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
-        floor = pybullet.createMultiBody(0.0, floor_shape, physicsClientId=client)
+        floor = pybullet.createMultiBody(
+            0.0,
+            floor_shape,
+            basePosition=(0.0, 0.0, self.effects.floor_offset),
+            baseOrientation=rotations.wxyz_to_xyzw(rotations.tilt(*self.effects.floor_tilt)).tolist(),
+            physicsClientId=client,
+        )
         # PyBullet combines two touching materials by multiplying their frictions and their restitutions, so
         # with the floor at 1.0 and 1.0 the object's own coefficients are the ones in effect.
         pybullet.changeDynamics(
@@ -69,24 +79,39 @@ class BulletScene:
             restitution=settings.floor_restitution,
             rollingFriction=0.0,
             spinningFriction=0.0,
+            anisotropicFriction=(*self.effects.floor_friction_scale, 1.0),
             physicsClientId=client,
         )
         # Without indices PyBullet wraps the vertices in a convex hull: exactly our solids.
         body_shape = pybullet.createCollisionShape(pybullet.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=client)
         bodies = []
         for k in range(spec.bodies):
-            body = pybullet.createMultiBody(settings.mass, body_shape, basePosition=self._parking_spot(k), physicsClientId=client)
+            body = pybullet.createMultiBody(
+                settings.mass,
+                body_shape,
+                basePosition=self._parking_spot(k),
+                baseInertialFramePosition=self.com_offset.tolist(),
+                physicsClientId=client,
+            )
             pybullet.changeDynamics(
                 body, -1,
                 mass=settings.mass,
-                localInertiaDiagonal=self.inertia_diagonal.tolist(),
+                localInertiaDiagonal=(self.inertia_diagonal * self.effects.inertia_scale).tolist(),
                 lateralFriction=spec.friction,
                 restitution=spec.restitution,
                 physicsClientId=client,
-                **BODY_DYNAMICS_OVERRIDES,
+                **{
+                    **BODY_DYNAMICS_OVERRIDES,
+                    "rollingFriction": self.effects.rolling_friction,
+                    "spinningFriction": self.effects.spinning_friction,
+                },
             )
             bodies.append(body)
         return floor, tuple(bodies)
+
+    def _offset_world(self, orientations: np.ndarray) -> np.ndarray:
+        """The centre of mass relative to the mesh frame, world frame, for orientations [..., 4] (w-first)."""
+        return rotations.rotate(orientations, np.broadcast_to(self.com_offset, orientations.shape[:-1] + (3,)))
 
     @staticmethod
     def _parking_spot(k: int) -> tuple[float, float, float]:
@@ -117,6 +142,10 @@ class BulletScene:
             pybullet.resetBasePositionAndOrientation(body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client)
         pybullet.performCollisionDetection(physicsClientId=client)
         orientations_xyzw = rotations.wxyz_to_xyzw(poses[:, 3:])
+        if self.com_offset.any():  # PyBullet places and reports a body by its centre of mass
+            offset = self._offset_world(poses[:, 3:])
+            poses = np.concatenate([poses[:, :3] + offset, poses[:, 3:]], axis=1)
+            velocities = np.concatenate([velocities[:, :3] + np.cross(velocities[:, 3:], offset), velocities[:, 3:]], axis=1)
         for body, pose, orientation, velocity in zip(self.bodies, poses, orientations_xyzw, velocities):
             pybullet.resetBasePositionAndOrientation(body, pose[:3], orientation, physicsClientId=client)
             pybullet.resetBaseVelocity(body, velocity[:3], velocity[3:], physicsClientId=client)
@@ -150,6 +179,7 @@ class BulletScene:
         readings = []
         record = readings.append
         contact_log: list[tuple[int, tuple]] = []
+        drag = self._apply_drag if self.effects.drag else None
         for t in range(frames):
             if t:
                 step(client)
@@ -158,9 +188,31 @@ class BulletScene:
             for body in bodies:
                 record(read_pose(body, client))
                 record(read_velocity(body, client))
+            if drag:
+                drag(readings[-2 * len(bodies) :])
         flat = np.fromiter(_flatten(_flatten(readings)), dtype=np.float64, count=frames * len(bodies) * ENGINE_STATE_SIZE)
         states = flat.reshape(frames, len(bodies), ENGINE_STATE_SIZE)
-        return states, self._contact_wrenches(contact_log, states[..., :3]) if record_contacts else None
+        # Torques are taken about the centres of mass, which PyBullet reports: before moving to the mesh frames.
+        contacts = self._contact_wrenches(contact_log, states[..., :3]) if record_contacts else None
+        if self.com_offset.any():
+            states = self._mesh_frame_states(states)
+        return states, contacts
+
+    def _apply_drag(self, latest: list[tuple]) -> None:
+        """Quadratic fluid drag for the next step, -c |u| u at each centre of mass, u = velocity - wind (world)."""
+        wind = np.array(self.effects.wind)
+        for body, (pose, velocity) in zip(self.bodies, zip(latest[::2], latest[1::2])):
+            relative = np.array(velocity[0]) - wind
+            force = -self.drag_coefficient * np.linalg.norm(relative) * relative
+            pybullet.applyExternalForce(body, -1, force.tolist(), pose[0], pybullet.WORLD_FRAME, physicsClientId=self.client)
+
+    def _mesh_frame_states(self, states: np.ndarray) -> np.ndarray:
+        """Engine states [T, K, 13] of the centres of mass -> of the mesh frames (position and linear velocity)."""
+        states = states.copy()
+        offset = self._offset_world(rotations.xyzw_to_wxyz(states[..., 3:7]))
+        states[..., :3] -= offset
+        states[..., 7:10] -= np.cross(states[..., 10:13], offset)
+        return states
 
     def _contact_wrenches(self, contact_log: list[tuple[int, tuple]], centres: np.ndarray) -> dict[str, np.ndarray]:
         """Per-frame, per-body contact forces (N) and torques about the centre of mass (N m), [T, K, 3] each.

@@ -16,6 +16,7 @@ from typing import Mapping
 import numpy as np
 from tqdm import tqdm
 
+from contactbench.generation.effects import NONE, ConcealedEffects
 from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, CONTACT_KEYS, ENGINE_STATE_SIZE, BulletScene, recorded_motion
 from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, solid
@@ -49,6 +50,7 @@ class _Job:
     derived_seed: int
     split_sizes: tuple[tuple[str, int], ...]
     record_contacts: bool
+    effects: ConcealedEffects = NONE
 
     def place(self, toss: int) -> str:
         """Where toss `toss` lands, e.g. "val toss 3"."""
@@ -75,7 +77,7 @@ class _TossRunner:
 
     def __init__(self, job: _Job):
         self.job = job
-        self.scene = BulletScene(job.mesh, job.spec, job.settings)
+        self.scene = BulletScene(job.mesh, job.spec, job.settings, job.effects)
 
     def __call__(self, tosses: range) -> _Chunk:
         job, frames, bodies = self.job, self.job.settings.frames, self.job.spec.bodies
@@ -185,6 +187,8 @@ def generate_dataset(
     workers: int = 2,
     record_contacts: bool = False,
     progress: bool = True,
+    effects: tuple[str, ...] = (),
+    effect_strength: float = 1.0,
 ) -> Path:
     """Simulate one scene variant and write it to `out_dir` as a recordings dataset.
 
@@ -192,6 +196,8 @@ def generate_dataset(
     Tosses are numbered across the splits in `split_sizes` order (train 0..274, val 275..439, test 440..549 by
     default); each has its own random stream, so the files are byte-identical for the same seed and spec
     whatever `workers` is. With record_contacts each split also holds the CONTACT_KEYS arrays [N, T, K, 3].
+    `effects` (generation.effects.EFFECT_NAMES) switch on physics the meta does not describe; the tosses start
+    exactly as without them, and only meta.generator.effects records what was switched on and how strongly.
     """
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
@@ -203,7 +209,8 @@ def generate_dataset(
     solid_name = SOLID_NAMES[spec.faces]
     mesh = solid(spec.faces, settings.width)
     derived_seed = derive_seed(seed, spec)
-    job = _Job(mesh, spec, settings, derived_seed, sizes, record_contacts)
+    concealed = ConcealedEffects.named(effects, effect_strength)
+    job = _Job(mesh, spec, settings, derived_seed, sizes, record_contacts, concealed)
     name = f"{spec.name}-{variant}" if variant else spec.name
     recorded = _simulate_all(job, min(workers, sum(size for _, size in sizes)), progress, name)
 
@@ -253,6 +260,8 @@ def generate_dataset(
                 "material_combination": "PyBullet multiplies the friction and the restitution of the two bodies in contact",
             },
             "contacts_recorded": record_contacts,
+            "effects": concealed.truth(effects),
+            "effect_strength": float(effect_strength),
         },
     }
     return write_recordings(out_dir, Recordings(meta=meta, meshes={mesh_path: mesh}, splits=splits))

@@ -27,7 +27,7 @@ default solref/solimp (one contact point per convex pair: MuJoCo's `multiccd` st
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
 
 import mujoco
@@ -36,9 +36,31 @@ import numpy as np
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.recordings import Recordings
+from contactbench.values import freeze_numbers
 
 MUJOCO_DEFAULT_SOLREF = (0.02, 1.0)  # time constant (s), damping ratio: MuJoCo's default for every contact
 MUJOCO_DEFAULT_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
+
+
+@dataclass(frozen=True)
+class SceneEffects:
+    """Physics outside Table 2c, each off by default; diagnose.py switches them on when recordings ask for it."""
+
+    fluid_density: float = 0.0  # kg/m^3: MuJoCo's inertia-box fluid model (quadratic drag on every body)
+    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m/s, world frame; acts through fluid_density only
+    friction_anisotropy: float = 1.0  # floor friction along world x / along world y (their geometric mean is fixed)
+    com_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, body frame, added to every body's centre of mass
+    inertia_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # multiplies every body's inertia along the mesh axes
+    floor_offset: float = 0.0  # m, the floor's height above the recordings' floor_z
+    floor_tilt: tuple[float, float] = (0.0, 0.0)  # rad, the floor's rotation about world x, then about world y
+
+    def __post_init__(self):
+        freeze_numbers(self, vectors=("wind", "com_offset", "inertia_scale", "floor_tilt"))
+        if not (self.fluid_density >= 0 and self.friction_anisotropy > 0 and min(self.inertia_scale) > 0):
+            raise ContactbenchError(f"fluid density must be >= 0, friction anisotropy and inertia scales > 0, got {self}")
+
+
+NO_EFFECTS = SceneEffects()
 
 
 @dataclass(frozen=True)
@@ -51,16 +73,10 @@ class ContactParameters:
     floor_damping: float | None
     torsional_friction: float = 0.0  # non-zero turns on condim 4 (all contacts)
     rolling_friction: float = 0.0  # non-zero turns on condim 6 (all contacts)
+    effects: SceneEffects = NO_EFFECTS
 
     def __post_init__(self):
-        # Plain floats keep the instance hashable (it keys model caches) whatever the caller passed.
-        for item in fields(self):
-            value = getattr(self, item.name)
-            if item.name == "object_friction":
-                value = tuple(float(x) for x in np.ravel(value))
-            elif value is not None:
-                value = float(value)
-            object.__setattr__(self, item.name, value)
+        freeze_numbers(self, vectors=("object_friction",), skip=("effects",))
         if (self.floor_stiffness is None) != (self.floor_damping is None):
             raise ContactbenchError("floor_stiffness and floor_damping are given together or not at all")
         frictions = self.object_friction + (self.floor_friction, self.torsional_friction, self.rolling_friction)
@@ -107,9 +123,13 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
         f'face="{" ".join(str(int(i)) for i in dataset.meshes[path].faces.ravel())}"/>'
         for path, name in mesh_names.items()
     ]
+    effects = params.effects
+    root_scale = np.sqrt(np.array(effects.inertia_scale))
     bodies, pairs = [], []
     for k, body in enumerate(dataset.bodies):
         com, inertia = dataset.mass_properties(k)
+        com = com + np.array(effects.com_offset)
+        inertia = root_scale[:, None] * inertia * root_scale[None, :]
         full_inertia = (inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2])
         bodies.append(
             f'<body name="body{k}"><freejoint name="joint{k}"/>'
@@ -118,19 +138,23 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
             f'friction="{_numbers((params.object_friction[k],) + spin_roll)}"/></body>'
         )
         sliding = max(params.object_friction[k], params.floor_friction)
+        # A floor contact's first tangent is the floor's y axis, its second the x axis (MuJoCo's plane frame).
+        along_y, along_x = sliding / np.sqrt(effects.friction_anisotropy), sliding * np.sqrt(effects.friction_anisotropy)
         pairs.append(
             f'<pair geom1="floor" geom2="geom{k}" condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
             f'solimp="{_numbers(MUJOCO_DEFAULT_SOLIMP)}" '
-            f'friction="{_numbers((sliding, sliding, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
+            f'friction="{_numbers((along_y, along_x, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
         )
+    fluid = f' density="{effects.fluid_density!r}" wind="{_numbers(effects.wind)}"' if effects.fluid_density > 0 else ""
     return "\n".join(
         [
             f"<mujoco model={quoteattr(dataset.name)}>",
             '<compiler angle="radian" inertiafromgeom="false"/>',
-            f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(dataset.gravity)}" integrator="Euler"/>',
+            f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(dataset.gravity)}" integrator="Euler"{fluid}/>',
             "<asset>", *assets, "</asset>",
             "<worldbody>",
-            f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z!r}" contype="0" conaffinity="0" '
+            f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z + effects.floor_offset!r}" '
+            f'quat="{_numbers(rotations.tilt(*effects.floor_tilt))}" contype="0" conaffinity="0" '
             f'condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
             f'friction="{_numbers((params.floor_friction,) + spin_roll)}"/>',
             *bodies,

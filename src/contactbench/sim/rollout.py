@@ -6,8 +6,9 @@ actuators or plugins, so act and plugin state are empty (checked).
 """
 from __future__ import annotations
 
+import logging
 import os
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Sequence
@@ -27,7 +28,20 @@ from contactbench.sim.mujoco_scene import (
     world_velocities,
 )
 
+log = logging.getLogger(__name__)
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
+# MuJoCo prints every solver warning to stdout (a search can print millions of "Linesearch objective is not
+# convex"); count them instead and log the first of each kind. Divergence itself is detected from the states.
+WARNINGS: Counter[str] = Counter()
+
+
+def _count_warning(message: str) -> None:
+    WARNINGS[message] += 1
+    if WARNINGS[message] == 1:
+        log.debug("MuJoCo: %s (further ones counted in contactbench.sim.rollout.WARNINGS)", message.strip())
+
+
+mujoco.set_mju_user_warning(_count_warning)
 # MuJoCo answers a NaN/huge state by resetting the data, which zeroes its time; starting every rollout at a
 # non-zero time makes such a reset visible in the returned states.
 START_TIME = 1.0

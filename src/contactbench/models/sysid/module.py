@@ -161,7 +161,7 @@ class NevergradSearch(pl.Callback):
         path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(".last.ckpt.partial")
-        trainer.save_checkpoint(str(partial))
+        trainer.save_checkpoint(str(partial), weights_only=False)  # with the optimiser state, explicitly
         os.replace(partial, path)
 
     def _new_optimizer(self, module: SysIDModule):

@@ -1,0 +1,19 @@
+"""Locate, name, model and prove the physics a simulator misses: python diagnose.py recordings=PATH."""
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from contactbench import runs
+from contactbench.cli import guarded
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="diagnose")
+@guarded
+def main(cfg: DictConfig) -> str:
+    return runs.diagnose(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,271 @@
+"""The four steps of a diagnosis: fit the base simulator, locate the mismatch, name the missing physics, prove it."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from contactbench.diagnosis.fitting import ResidualFit
+from contactbench.diagnosis.library import Effect, Hypothesis, library
+from contactbench.diagnosis.phases import PHASES, FREE, label_phases
+from contactbench.diagnosis.segments import COMPONENTS, SegmentSimulator, Segments, cut_segments, residual_parts
+from contactbench.errors import ContactbenchError
+from contactbench.evaluation.scoring import score_model
+from contactbench.models.analytical import MujocoContactModel
+from contactbench.recordings import Recordings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Budget:
+    segment_frames: int = 16  # frames simulated from each recorded state before the next reset
+    fit_trajectories: int = 60  # train trajectories the fits see
+    val_trajectories: int = 120  # val trajectories that judge the candidates
+    base_evaluations: int = 160  # NGOpt evaluations of the base parameters before least squares
+    batch: int = 16  # candidates per batched rollout in the global search
+    lsq_iterations: int = 12  # least-squares function evaluations per fit (each Jacobian adds one batch)
+    front_runners: int = 3  # effects fitted in full after screening, per round
+    max_effects: int = 2
+    bootstrap: int = 1000
+
+
+@dataclass(frozen=True)
+class Decision:
+    """When an effect counts: significantly better on val than the model of its round (paired bootstrap, 95%),
+    closing at least `margin` of the BASE simulator's val loss (so a second effect must matter on the scale of the
+    original mismatch, not merely polish the first effect's model-form error), and a better BIC on train."""
+
+    margin: float = 0.05
+    confidence: float = 0.95
+
+
+def _pick(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
+    return np.sort(rng.choice(count, size=min(count, limit), replace=False))
+
+
+def bootstrap_ratio(base: np.ndarray, other: np.ndarray, draws: int, rng: np.random.Generator, confidence: float = 0.95) -> tuple[float, list[float]]:
+    """Relative improvement 1 - mean(other) / mean(base) over paired per-trajectory values, with a percentile
+    interval from resampling trajectories."""
+    base, other = np.asarray(base, float), np.asarray(other, float)
+    point = 1.0 - other.mean() / base.mean()
+    picks = rng.integers(0, len(base), size=(draws, len(base)))
+    samples = 1.0 - other[picks].mean(axis=1) / base[picks].mean(axis=1)
+    tail = (1.0 - confidence) / 2 * 100
+    return float(point), [float(np.percentile(samples, tail)), float(np.percentile(samples, 100 - tail))]
+
+
+class Diagnosis:
+    """Runs the steps on a dataset the models may see (train, val, test; no meta.generator)."""
+
+    def __init__(self, dataset: Recordings, budget: Budget = Budget(), decision: Decision = Decision(), *, seed: int = 0, context_frames: int = 6):
+        if "generator" in dataset.meta:
+            raise ContactbenchError("diagnosis must not see meta.generator: pass dataset.for_models([...])")
+        self.dataset = dataset
+        self.budget = budget
+        self.decision = decision
+        self.context_frames = context_frames
+        self.rng = np.random.default_rng(seed)
+        self.seed = seed
+        self.library = library(float(dataset.widths().max()))
+        train, val = dataset.split("train"), dataset.split("val")
+        fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
+        val_rows = _pick(self.rng, val.n_trajectories, budget.val_trajectories)
+        self.train_fit = ResidualFit(SegmentSimulator(dataset, cut_segments(dataset, train.select(fit_rows), budget.segment_frames)))
+        self.val_split = val.select(val_rows)
+        self.val_fit = ResidualFit(SegmentSimulator(dataset, cut_segments(dataset, self.val_split, budget.segment_frames)))
+        self.timings: dict[str, float] = {}
+
+    # ---------------------------------------------------------------- steps
+
+    def fit_base(self) -> tuple[Hypothesis, np.ndarray]:
+        started = time.perf_counter()
+        hypothesis = Hypothesis(self.dataset.n_bodies)
+        values = self.train_fit.global_search(hypothesis, self.budget.base_evaluations, self.budget.batch, self.seed)
+        # From here on every fit and comparison uses the same robust loss.
+        self.val_fit.scale = self.train_fit.calibrate(hypothesis, values)
+        values, loss = self.train_fit.least_squares(hypothesis, values, self.budget.lsq_iterations)
+        log.info("base fit: train loss %.5f, %s", loss, hypothesis.reported(values)["base"])
+        self.timings["base_fit_s"] = time.perf_counter() - started
+        return hypothesis, values
+
+    def val_losses(self, hypothesis: Hypothesis, values: np.ndarray) -> np.ndarray:
+        """Per-trajectory mean robust loss of the short-horizon residuals on val [N_val]."""
+        residuals = self.val_fit.residuals(hypothesis, values[None])[0]
+        return self.val_fit.simulator.trajectory_losses(self.val_fit.robust(residuals), self.val_split.n_trajectories)
+
+    def locate(self, hypothesis: Hypothesis, values: np.ndarray) -> dict:
+        """Squared residual on val by phase x component (and body), with bootstrap intervals over trajectories."""
+        segments = self.val_fit.simulator.segments
+        poses, unstable = self.val_fit.simulator.predict([hypothesis.contact_parameters(values)])
+        parts = residual_parts(segments, poses[0])
+        # [M, K, component]: squared residual summed over the segment's frames
+        squared = np.stack([np.nansum(parts[c] ** 2, axis=1) for c in COMPONENTS], axis=-1)
+        squared[unstable[0]] = np.nan
+        squared = np.nan_to_num(squared)
+        n_traj = self.val_split.n_trajectories
+        table = np.zeros((n_traj, len(PHASES), len(COMPONENTS)))  # per trajectory, phase, component
+        for k in range(self.dataset.n_bodies):
+            np.add.at(table, (segments.trajectory, segments.phase[:, k]), squared[:, k])
+        body_totals = np.zeros((n_traj, self.dataset.n_bodies))
+        np.add.at(body_totals, segments.trajectory, squared.sum(axis=-1))
+        frames = np.zeros((n_traj, len(PHASES)))
+        for k in range(self.dataset.n_bodies):
+            np.add.at(frames, (segments.trajectory, segments.phase[:, k]), 1)
+        total = table.sum()
+        picks = self.rng.integers(0, n_traj, size=(self.budget.bootstrap, n_traj))
+        resampled = table[picks].sum(axis=1)  # [draws, phase, component]
+        shares = resampled / resampled.sum(axis=(1, 2), keepdims=True)
+        phase_share = table.sum(axis=(0, 2)) / total
+        phase_ci = np.percentile(shares.sum(axis=2), [2.5, 97.5], axis=0)
+        cell = table.sum(axis=0) / total
+        cell_ci = np.percentile(shares, [2.5, 97.5], axis=0)
+        segment_share = frames.sum(axis=0) / frames.sum()
+        noise = self.noise_floor()
+        per_segment = table.sum(axis=0).sum(axis=1) / np.maximum(frames.sum(axis=0), 1)  # mean squared residual per segment
+        worst_phase, worst_component = np.unravel_index(np.argmax(cell), cell.shape)
+        return {
+            "phase_shares": {p: float(phase_share[i]) for i, p in enumerate(PHASES)},
+            "phase_shares_ci95": {p: [float(phase_ci[0, i]), float(phase_ci[1, i])] for i, p in enumerate(PHASES)},
+            "segment_shares": {p: float(segment_share[i]) for i, p in enumerate(PHASES)},
+            "cells": {f"{p}/{c}": float(cell[i, j]) for i, p in enumerate(PHASES) for j, c in enumerate(COMPONENTS)},
+            "cells_ci95": {f"{p}/{c}": [float(cell_ci[0, i, j]), float(cell_ci[1, i, j])] for i, p in enumerate(PHASES) for j, c in enumerate(COMPONENTS)},
+            "body_shares": (body_totals.sum(axis=0) / body_totals.sum()).tolist(),
+            "mean_squared_residual_per_segment": {p: float(per_segment[i]) for i, p in enumerate(PHASES)},
+            "noise_floor_per_segment": noise,
+            "above_noise_floor": {p: bool(per_segment[i] > 3 * noise) for i, p in enumerate(PHASES)},
+            "where": f"{PHASES[worst_phase]}/{COMPONENTS[worst_component]}",
+            "total_squared_residual": float(total),
+        }
+
+    def noise_floor(self) -> float:
+        """Squared residual per segment that measurement noise alone would leave (a perfect simulator's).
+
+        Position noise sigma comes from free-flight frames, where the second difference of positions must equal
+        g dt^2 exactly; a segment restarted from a noisy pose and a finite-difference velocity then drifts by
+        about sigma sqrt(2 + 2 j^2) after j frames (in half-widths, as the residuals)."""
+        split, dt = self.val_split, self.dataset.dt
+        labels = label_phases(self.dataset, split)
+        poses = split.poses[..., :3]
+        second = poses[:, 2:] - 2 * poses[:, 1:-1] + poses[:, :-2] - self.dataset.gravity * dt**2  # [N, T-2, K, 3]
+        free = (labels[:, 1:-1] == FREE) & (labels[:, 2:] == FREE) & (labels[:, :-2] == FREE)
+        if not free.any():
+            return 0.0
+        sigma = float(np.sqrt(np.mean(second[free] ** 2) / 6.0))  # var(x_{t+1} - 2 x_t + x_{t-1}) = 6 sigma^2 per axis
+        half_width = float(self.dataset.widths().mean()) / 2
+        steps = np.arange(1, self.budget.segment_frames + 1)
+        return float(3 * np.sum((2 + 2 * steps**2)) * (sigma / half_width) ** 2 * self.dataset.n_bodies)
+
+    # ---------------------------------------------------------------- naming
+
+    def name_effects(self, base: Hypothesis, base_values: np.ndarray) -> tuple[Hypothesis, np.ndarray, list[dict]]:
+        """Greedy forward selection over the library; returns the chosen hypothesis and every candidate's record."""
+        started = time.perf_counter()
+        current, values = base, base_values
+        current_val = base_val = self.val_losses(current, values)
+        current_train = float(self.train_fit.loss(current, values[None])[0])
+        n_residuals = self.train_fit.simulator.segments.truth[..., :3].size * 2
+        records: list[dict] = []
+        for round_ in range(self.budget.max_effects):
+            remaining = [e for e in self.library.values() if e.name not in current.names]
+            if not remaining:
+                break
+            screened = []
+            for effect in remaining:
+                trial = current.with_effect(effect)
+                screened.append((self.train_fit.screen(trial, trial.start(current, values)), effect))
+            screened.sort(key=lambda item: item[0])
+            log.info("screen (train loss after one step, current %.5f): %s", current_train, ", ".join(f"{e.name} {s:.5f}" for s, e in screened))
+            fitted = []
+            for screened_loss, effect in screened[: self.budget.front_runners]:
+                trial = current.with_effect(effect)
+                trial_values, train_loss = self.train_fit.least_squares(trial, trial.start(current, values), self.budget.lsq_iterations)
+                val = self.val_losses(trial, trial_values)
+                improvement, ci = bootstrap_ratio(current_val, val, self.budget.bootstrap, self.rng, self.decision.confidence)
+                extra = len(trial.parameters) - len(current.parameters)
+                delta_bic = n_residuals * np.log(train_loss / current_train) + extra * np.log(n_residuals)
+                closes = float((current_val.mean() - val.mean()) / base_val.mean())
+                record = {
+                    "name": effect.name,
+                    "round": round_ + 1,
+                    "screen_train_loss": screened_loss,
+                    "train_loss": train_loss,
+                    "val_improvement": improvement,
+                    "closes_of_base_loss": closes,
+                    "closes_ci95": [float(c * current_val.mean() / base_val.mean()) for c in ci],
+                    "ci95": ci,
+                    "delta_bic": float(delta_bic),
+                    "parameters": trial.reported(trial_values)[effect.name],
+                }
+                record["passes"] = bool(ci[0] > 0 and closes >= self.decision.margin and delta_bic < 0)
+                records.append(record)
+                fitted.append((record, trial, trial_values, val, train_loss))
+                log.info("  %s: val improvement %.3f [%.3f, %.3f], dBIC %.0f -> %s", effect.name, improvement, *ci, delta_bic, "passes" if record["passes"] else "no")
+            for _, effect in screened[self.budget.front_runners :]:
+                records.append({"name": effect.name, "round": round_ + 1, "screen_train_loss": _, "val_improvement": None, "ci95": None, "passes": False, "screened_out": True})
+            passing = [item for item in fitted if item[0]["passes"]]
+            if not passing:
+                break
+            best = max(passing, key=lambda item: item[0]["val_improvement"])
+            # Of the effects not significantly worse than the best, the one with the fewest parameters.
+            tied = [item for item in passing if item[0]["ci95"][1] >= best[0]["val_improvement"]]
+            chosen = min(tied, key=lambda item: (len(item[1].parameters), -item[0]["val_improvement"]))
+            chosen[0]["chosen"] = True
+            _, current, values, current_val, current_train = chosen
+        self.timings["naming_s"] = time.perf_counter() - started
+        return current, values, records
+
+    # ---------------------------------------------------------------- proof
+
+    def heldout(self, hypothesis: Hypothesis, values: np.ndarray) -> dict:
+        """Test-split scores of the paper's protocol (full rollouts from the context frames)."""
+        model = MujocoContactModel(name="+".join(("base",) + hypothesis.names), parameters=hypothesis.contact_parameters(values))
+        score = score_model(model, self.dataset, "test", self.context_frames, dataset_name=self.dataset.name, variant="")
+        return {"pos_err": score.metrics.per_trajectory["pos_err"], "rot_err_rad": score.metrics.per_trajectory["rot_err_rad"]}
+
+
+def run_diagnosis(dataset: Recordings, budget: Budget = Budget(), decision: Decision = Decision(), *, seed: int = 0, context_frames: int = 6) -> tuple[dict, dict]:
+    """The diagnosis document (diagnosis.json) and the arrays its report draws."""
+    started = time.perf_counter()
+    steps = Diagnosis(dataset, budget, decision, seed=seed, context_frames=context_frames)
+    base, base_values = steps.fit_base()
+    located = steps.locate(base, base_values)
+    final, final_values, candidates = steps.name_effects(base, base_values)
+    before = steps.heldout(base, base_values)
+    after = steps.heldout(final, final_values) if final.effects else before
+    improvement, ci = bootstrap_ratio(before["pos_err"], after["pos_err"], budget.bootstrap, steps.rng)
+    rot_improvement, rot_ci = bootstrap_ratio(before["rot_err_rad"], after["rot_err_rad"], budget.bootstrap, steps.rng)
+    effects = []
+    for effect in final.effects:
+        chosen = next(c for c in candidates if c["name"] == effect.name and c.get("chosen"))
+        effects.append({"name": effect.name, "parameters": final.reported(final_values)[effect.name], "ci95": chosen["ci95"],
+                        "val_improvement": chosen["val_improvement"], "physics": effect.physics, "mujoco": effect.mujoco})
+    document = {
+        "verdict": "effect" if effects else "none",
+        "effects": effects,
+        "base_parameters": base.reported(base_values)["base"],
+        "final_base_parameters": final.reported(final_values)["base"],
+        "located": located,
+        "located_after": steps.locate(final, final_values) if final.effects else located,
+        "heldout": {
+            "split": "test",
+            "n_trajectories": int(len(before["pos_err"])),
+            "base": {"pos_err": float(before["pos_err"].mean()), "rot_err_rad": float(before["rot_err_rad"].mean())},
+            "augmented": {"pos_err": float(after["pos_err"].mean()), "rot_err_rad": float(after["rot_err_rad"].mean())},
+            "improvement": improvement,
+            "ci95": ci,
+            "rot_improvement": rot_improvement,
+            "rot_ci95": rot_ci,
+        },
+        "candidates": candidates,
+        "decision_rule": {"margin": decision.margin, "confidence": decision.confidence,
+                          "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
+                                  "closing >= margin of the base simulator's val loss, and delta BIC < 0 on train"},
+        "budget": budget.__dict__,
+        "evaluations": steps.train_fit.evaluations + steps.val_fit.evaluations,
+        "seconds": {**{k: round(v, 1) for k, v in steps.timings.items()}, "total_s": round(time.perf_counter() - started, 1)},
+    }
+    arrays = {"before": before, "after": after, "final": final, "final_values": final_values, "base": base, "base_values": base_values, "steps": steps}
+    return document, arrays

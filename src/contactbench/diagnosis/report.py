@@ -1,0 +1,154 @@
+"""diagnosis.json and report.md with the plots a person reads in a minute."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from contactbench import atomic  # noqa: E402
+from contactbench.diagnosis.phases import PHASES, label_phases  # noqa: E402
+from contactbench.diagnosis.segments import COMPONENTS  # noqa: E402
+from contactbench.evaluation.figures import save_figure  # noqa: E402
+from contactbench.models.base import make_context  # noqa: E402
+from contactbench.sim.rollout import rollout_context  # noqa: E402
+
+
+def write_diagnosis(document: dict, arrays: dict, out_dir: Path) -> Path:
+    out_dir = Path(out_dir)
+    figures = out_dir / "figures"
+    drawn = [
+        _phase_components(document["located"], figures / "residual_by_phase.png"),
+        _signature(arrays, figures / "signature.png"),
+        _trajectory(arrays, figures / "heldout_trajectory.png"),
+        _candidates(document["candidates"], document["decision_rule"]["margin"], figures / "candidates.png"),
+    ]
+    atomic.write_json(out_dir / "diagnosis.json", document)
+    atomic.write_text(out_dir / "report.md", _markdown(document, [path for path in drawn if path is not None]))
+    return out_dir / "report.md"
+
+
+def summary_sentence(document: dict) -> str:
+    held = document["heldout"]
+    where = document["located"]["where"]
+    if document["verdict"] == "none":
+        return (f"No candidate effect improved the fit significantly and by the margin; the remaining mismatch lives in "
+                f"{where} (held-out position error {held['base']['pos_err']:.4f} widths).")
+    names = " and ".join(f"{e['name']} ({e['physics']})" for e in document["effects"])
+    return (f"Missing: {names}; modelling it cut the held-out position error from {held['base']['pos_err']:.4f} to "
+            f"{held['augmented']['pos_err']:.4f} widths ({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to "
+            f"{held['ci95'][1]:.1%}); what remains lives in {document['located_after']['where']}.")
+
+
+def _markdown(document: dict, figures: list[Path]) -> str:
+    held = document["heldout"]
+    lines = [
+        "# Diagnosis", "", summary_sentence(document), "",
+        f"Verdict: **{document['verdict']}**. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).", "",
+        "## Held-out (test, full rollouts from the context frames)", "",
+        "| model | position error (widths) | rotation error (rad) |", "|---|---|---|",
+        f"| base | {held['base']['pos_err']:.4f} | {held['base']['rot_err_rad']:.4f} |",
+        f"| augmented | {held['augmented']['pos_err']:.4f} | {held['augmented']['rot_err_rad']:.4f} |", "",
+        f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired bootstrap over {held['n_trajectories']} test trajectories).", "",
+        "## Effects", "",
+    ]
+    lines += [f"- `{e['name']}` ({e['mujoco']}): " + ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items()) for e in document["effects"]] or ["- none"]
+    lines += ["", "## Candidates (val)", "", "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | dBIC | passes |", "|---|---|---|---|---|---|---|"]
+    for c in document["candidates"]:
+        if c.get("val_improvement") is None:
+            continue
+        lines.append(f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | {c['closes_of_base_loss']:.3f} | "
+                     f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''} |")
+    located = document["located"]
+    lines += ["", "## Where the base simulator misses (val, squared short-horizon residual)", "", "| phase | share | 95% CI | share of segments | above noise floor |", "|---|---|---|---|---|"]
+    for p in PHASES:
+        ci = located["phase_shares_ci95"][p]
+        lines.append(f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | {located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |")
+    lines += ["", *[f"![{path.stem}](figures/{path.name})" for path in figures], ""]
+    return "\n".join(lines)
+
+
+def _phase_components(located: dict, path: Path) -> Path:
+    cells = np.array([[located["cells"][f"{p}/{c}"] for c in COMPONENTS] for p in PHASES])
+    errors = np.array([[located["cells_ci95"][f"{p}/{c}"] for c in COMPONENTS] for p in PHASES])  # [P, C, 2]
+    figure, axis = plt.subplots(figsize=(7, 3.6))
+    width = 0.8 / len(COMPONENTS)
+    for j, component in enumerate(COMPONENTS):
+        x = np.arange(len(PHASES)) + j * width
+        axis.bar(x, cells[:, j], width, label=component, yerr=[cells[:, j] - errors[:, j, 0], errors[:, j, 1] - cells[:, j]], capsize=2)
+    axis.set_xticks(np.arange(len(PHASES)) + 0.4 - width / 2, PHASES)
+    axis.set_ylabel("share of squared residual")
+    axis.set_title("Base simulator: residual by contact phase x component (val, 95% CI)")
+    axis.legend(fontsize=7)
+    return save_figure(figure, path)
+
+
+def _signature(arrays: dict, path: Path) -> Path | None:
+    """Observed base residual against the change the winning effect makes (its signature), per residual entry."""
+    final, steps = arrays["final"], arrays["steps"]
+    if not final.effects:
+        return None
+    fit = steps.val_fit
+    base_residuals = fit.residuals(arrays["base"], arrays["base_values"][None])[0].ravel()
+    change = base_residuals - fit.residuals(final, arrays["final_values"][None])[0].ravel()
+    rng = np.random.default_rng(0)
+    shown = rng.choice(len(change), size=min(len(change), 20000), replace=False)
+    figure, axis = plt.subplots(figsize=(4.6, 4.2))
+    axis.scatter(change[shown], base_residuals[shown], s=2, alpha=0.3)
+    limit = np.percentile(np.abs(change), 99.5) * 1.2 or 1.0
+    axis.plot([-limit, limit], [-limit, limit], color="k", lw=0.8)
+    axis.set_xlim(-limit, limit)
+    axis.set_ylim(-limit * 2, limit * 2)
+    correlation = float(np.corrcoef(change, base_residuals)[0, 1])
+    axis.set_xlabel(f"signature of {'+'.join(final.names)} (model change)")
+    axis.set_ylabel("base residual")
+    axis.set_title(f"residual vs signature, r = {correlation:.2f}")
+    return save_figure(figure, path)
+
+
+def _trajectory(arrays: dict, path: Path) -> Path:
+    """The held-out trajectory the augmented model improves most (the first if none), phases shaded."""
+    steps = arrays["steps"]
+    dataset = steps.dataset
+    gain = arrays["before"]["pos_err"] - arrays["after"]["pos_err"]
+    index = int(np.argmax(gain)) if arrays["final"].effects else 0
+    test = dataset.split("test").select([index])
+    context = make_context(test, dataset.dt, steps.context_frames)
+    scene = dataset.for_models()
+    before = rollout_context(scene, context, arrays["base"].contact_parameters(arrays["base_values"]))[0]
+    after = rollout_context(scene, context, arrays["final"].contact_parameters(arrays["final_values"]))[0]
+    phases = label_phases(dataset, test)[0, :, 0]
+    length = int(test.lengths[0])
+    time = np.arange(length) * dataset.dt
+    figure, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for axis, coordinate, label in ((axes[0], 0, "x (m)"), (axes[1], 2, "z (m)")):
+        for phase, colour in zip(range(1, len(PHASES)), ("tab:red", "tab:orange", "tab:green", "tab:gray")):
+            mask = phases[:length] == phase
+            axis.fill_between(time, 0, 1, where=mask, transform=axis.get_xaxis_transform(), color=colour, alpha=0.15, label=PHASES[phase])
+        axis.plot(time, test.poses[0, :length, 0, coordinate], "k", label="recorded")
+        axis.plot(time, before[:length, 0, coordinate], "--", label="base")
+        axis.plot(time, after[:length, 0, coordinate], ":", label="augmented")
+        axis.set_xlabel("t (s)")
+        axis.set_ylabel(label)
+    axes[0].legend(fontsize=6)
+    figure.suptitle(f"held-out trajectory {index} (body 0)")
+    return save_figure(figure, path)
+
+
+def _candidates(candidates: list[dict], margin: float, path: Path) -> Path | None:
+    scored = [c for c in candidates if c.get("val_improvement") is not None]
+    if not scored:
+        return None
+    figure, axis = plt.subplots(figsize=(6, 0.4 * len(scored) + 1.4))
+    labels = [f"{c['name']} (round {c['round']})" for c in scored]
+    values = np.array([c["closes_of_base_loss"] for c in scored])
+    low = np.array([c["closes_ci95"][0] for c in scored])
+    high = np.array([c["closes_ci95"][1] for c in scored])
+    axis.barh(labels, values, xerr=[values - low, high - values], capsize=3, color=["tab:green" if c["passes"] else "tab:gray" for c in scored])
+    axis.axvline(margin, color="k", ls="--", lw=0.8, label=f"margin {margin:.0%}")
+    axis.set_xlabel("share of the base val loss closed (95% CI)")
+    axis.legend(fontsize=7)
+    return save_figure(figure, path)

@@ -1,0 +1,106 @@
+"""Short-horizon residuals: restart the simulator from the recorded state every few frames and compare."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from contactbench import rotations
+from contactbench.diagnosis.phases import IMPACT, PHASES, label_phases, recorded_velocities
+from contactbench.recordings import Recordings, Split
+from contactbench.sim.mujoco_scene import ContactParameters
+from contactbench.sim.rollout import MujocoRollouts
+
+# Residual components, world frame: linear (normal = along gravity, tangential), angular (normal, tangential),
+# and the angular residual in the body frame.
+COMPONENTS = ("linear_normal", "linear_tangential", "angular_normal", "angular_tangential")
+# A rollout that blew up scores as if off by this much in every residual entry (finite, so fits carry on).
+UNSTABLE_RESIDUAL = 10.0
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Segments of `length` frames cut from a split: where they start and what the recordings say happens."""
+
+    trajectory: np.ndarray  # [M] trajectory of each segment
+    start: np.ndarray  # [M] frame the simulator is reset to
+    poses0: np.ndarray  # [M, K, 7]
+    velocities0: np.ndarray  # [M, K, 6]
+    truth: np.ndarray  # [M, L, K, 7] recorded frames start+1 .. start+L
+    phase: np.ndarray  # [M, K] phase each body spends the segment in (an impact anywhere in it counts)
+    length: int
+    widths: np.ndarray  # [K]
+
+    @property
+    def count(self) -> int:
+        return len(self.start)
+
+
+def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: int = 1) -> Segments:
+    """Back-to-back segments of `length` frames from `first_frame` (frame 0 may lack a velocity estimate)."""
+    velocities = recorded_velocities(split, dataset.dt)
+    labels = label_phases(dataset, split)
+    trajectory, start = [], []
+    for n, frames in enumerate(split.lengths):
+        starts = np.arange(first_frame, int(frames) - length, length)
+        trajectory.append(np.full(len(starts), n))
+        start.append(starts)
+    trajectory, start = np.concatenate(trajectory), np.concatenate(start)
+    window = start[:, None] + np.arange(1, length + 1)[None, :]
+    truth = split.poses[trajectory[:, None], window]
+    segment_labels = labels[trajectory[:, None], window]  # [M, L, K]
+    phase = np.array([[_dominant(segment_labels[m, :, k]) for k in range(split.n_bodies)] for m in range(len(start))], dtype=np.int8)
+    return Segments(trajectory, start, split.poses[trajectory, start], velocities[trajectory, start], truth, phase, length, dataset.widths())
+
+
+def _dominant(labels: np.ndarray) -> int:
+    if (labels == IMPACT).any():
+        return IMPACT
+    return int(np.bincount(labels[labels >= 0], minlength=len(PHASES)).argmax())
+
+
+def residual_parts(segments: Segments, predicted: np.ndarray) -> dict[str, np.ndarray]:
+    """Residual components [..., M, L, K] of predicted poses [..., M, L, K, 7]: position over half the width
+    (as in eq. 1), rotation in rad; world normal/tangential parts and the body-frame rotation vector [..., 3]."""
+    truth = segments.truth
+    linear = (predicted[..., :3] - truth[..., :3]) / (segments.widths[:, None] / 2)
+    angular = rotations.to_rotation_vector(rotations.multiply(predicted[..., 3:], rotations.conjugate(truth[..., 3:])))
+    body_angular = rotations.rotate(rotations.conjugate(truth[..., 3:]), angular)
+    return {
+        "linear": linear,
+        "angular": angular,
+        "body_angular": body_angular,
+        "linear_normal": np.abs(linear[..., 2]),
+        "linear_tangential": np.linalg.norm(linear[..., :2], axis=-1),
+        "angular_normal": np.abs(angular[..., 2]),
+        "angular_tangential": np.linalg.norm(angular[..., :2], axis=-1),
+    }
+
+
+class SegmentSimulator:
+    """Residual vectors of many parameter sets on the same segments, all in one batched MuJoCo call."""
+
+    def __init__(self, dataset: Recordings, segments: Segments, nthread: int | None = None):
+        self.segments = segments
+        self.rollouts = MujocoRollouts(dataset, nthread)
+
+    def predict(self, params: list[ContactParameters]) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted poses [B, M, L, K, 7] and which items blew up [B, M]."""
+        result = self.rollouts.simulate(params, self.segments.poses0, self.segments.velocities0, self.segments.length)
+        return result.poses, result.unstable
+
+    def residuals(self, params: list[ContactParameters]) -> np.ndarray:
+        """[B, M, L, K, 6]: position residual over half the width, rotation residual (rad), per frame and body."""
+        poses, unstable = self.predict(params)
+        parts = residual_parts(self.segments, poses)
+        stacked = np.concatenate([parts["linear"], parts["angular"]], axis=-1)
+        stacked[unstable] = UNSTABLE_RESIDUAL
+        return np.nan_to_num(stacked, nan=UNSTABLE_RESIDUAL, posinf=UNSTABLE_RESIDUAL, neginf=-UNSTABLE_RESIDUAL)
+
+    def trajectory_losses(self, entry_losses: np.ndarray, n_trajectories: int) -> np.ndarray:
+        """Per-trajectory mean loss [..., N] from per-entry losses [..., M, L, K, 6]."""
+        per_segment = entry_losses.sum(axis=-1).mean(axis=(-1, -2))  # [..., M]
+        totals = np.zeros(per_segment.shape[:-1] + (n_trajectories,))
+        counts = np.bincount(self.segments.trajectory, minlength=n_trajectories)
+        np.add.at(totals.T, self.segments.trajectory, np.moveaxis(per_segment, -1, 0))
+        return totals / np.maximum(counts, 1)

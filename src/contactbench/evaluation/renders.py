@@ -1,0 +1,146 @@
+"""Headless renders with matplotlib (Agg; no display, no GPU, no OpenGL): final poses per method, rollout GIFs.
+
+Every model is rebuilt from its run folder (`.hydra/config.yaml` + fitted checkpoint, as evaluate.py does) and rolled
+out again on a few test trajectories, so renders need only the run folders and the dataset.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from contactbench import runs  # noqa: E402
+from contactbench.evaluation.figures import save_figure  # noqa: E402
+from contactbench.kinematics import world_vertices  # noqa: E402
+from contactbench.meshes import Mesh  # noqa: E402
+from contactbench.models.base import make_context  # noqa: E402
+
+log = logging.getLogger(__name__)
+COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+
+
+@dataclass
+class Rollouts:
+    label: str  # dataset/variant
+    truth: np.ndarray  # [n, T, K, 7]
+    lengths: np.ndarray  # [n]
+    predicted: dict[str, np.ndarray]  # model -> [n, T, K, 7]
+    meshes: list[Mesh]
+
+
+def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
+    """Roll every fitted model of one dataset variant out again on the first `trajectories` test tosses."""
+    predicted, truth = {}, None
+    for train_dir in train_dirs:
+        cfg = OmegaConf.load(train_dir / ".hydra" / "config.yaml")
+        dataset = runs.load_dataset(cfg, ["test"])
+        test = dataset.split("test").select(range(min(trajectories, dataset.split("test").n_trajectories)))
+        model = runs.load_fitted(cfg, dataset, train_dir)
+        predicted[cfg.model.name] = model.rollout(dataset.for_models(), make_context(test, dataset.dt, cfg.context_frames))
+        truth, lengths = test.poses, test.lengths
+        label = f"{cfg.dataset.name} {cfg.dataset.variant}"
+        meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
+    return Rollouts(label, truth, lengths, predicted, meshes)
+
+
+def _draw(axis, poses: np.ndarray, meshes: list[Mesh], colour: str, alpha: float, label: str | None) -> None:
+    for k, mesh in enumerate(meshes):
+        if not np.isfinite(poses[k]).all():
+            continue
+        corners = world_vertices(poses[k], mesh.vertices)
+        faces = Poly3DCollection([corners[face] for face in mesh.faces], facecolor=colour, edgecolor="k", linewidths=0.2, alpha=alpha)
+        faces.set_label(label if k == 0 else None)
+        axis.add_collection3d(faces)
+
+
+def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
+    centres = np.concatenate([rollouts.truth[n, : rollouts.lengths[n], :, :3].reshape(-1, 3)] + [p[n, : rollouts.lengths[n], :, :3].reshape(-1, 3) for p in rollouts.predicted.values()])
+    centres = centres[np.isfinite(centres).all(axis=1)]
+    middle = np.median(centres, axis=0)
+    reach = max(0.25, float(np.percentile(np.abs(centres[:, :2] - middle[:2]), 95)) + 0.1)
+    axis.set_xlim(middle[0] - reach, middle[0] + reach)
+    axis.set_ylim(middle[1] - reach, middle[1] + reach)
+    axis.set_zlim(0.0, reach)
+    axis.set_box_aspect((1, 1, 0.5))
+    axis.set_xticks([])
+    axis.set_yticks([])
+    axis.set_zticks([])
+
+
+def final_poses_figure(rollouts: Rollouts, path: Path) -> Path:
+    """Figs. 4 and 6 of the paper: the last frame of ground truth (grey) and of every method, per toss."""
+    count = len(rollouts.truth)
+    figure = plt.figure(figsize=(4.2 * count, 4.0))
+    for n in range(count):
+        axis = figure.add_subplot(1, count, n + 1, projection="3d")
+        last = int(rollouts.lengths[n]) - 1
+        _draw(axis, rollouts.truth[n, last], rollouts.meshes, "0.6", 0.5, "ground truth")
+        for colour, (model, poses) in zip(COLOURS, rollouts.predicted.items()):
+            _draw(axis, poses[n, last], rollouts.meshes, colour, 0.35, model)
+        _frame_axes(axis, rollouts, n)
+        axis.set_title(f"test toss {n}", fontsize=9)
+    figure.axes[0].legend(fontsize=7, loc="upper left")
+    figure.suptitle(f"Final poses: {rollouts.label}")
+    return save_figure(figure, path)
+
+
+def rollout_gif(rollouts: Rollouts, path: Path, toss: int = 0, every: int = 3) -> Path:
+    """An animation of one toss: ground truth and every method, side by side."""
+    panels = {"ground truth": rollouts.truth, **rollouts.predicted}
+    figure = plt.figure(figsize=(3.0 * len(panels), 3.2))
+    axes = [figure.add_subplot(1, len(panels), i + 1, projection="3d") for i in range(len(panels))]
+    frames = range(0, int(rollouts.lengths[toss]), every)
+
+    def show(t: int):
+        for axis, (name, poses), colour in zip(axes, panels.items(), ("0.6",) + COLOURS):
+            axis.cla()
+            _draw(axis, poses[toss, t], rollouts.meshes, colour, 0.8, None)
+            _frame_axes(axis, rollouts, toss)
+            axis.set_title(name, fontsize=8)
+        figure.suptitle(f"{rollouts.label}, test toss {toss}, frame {t}", fontsize=9)
+        return []
+
+    animation = FuncAnimation(figure, show, frames=frames, blit=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial.gif")
+    animation.save(partial, writer=PillowWriter(fps=15))
+    plt.close(figure)
+    partial.replace(path)
+    return path
+
+
+# Which variants the report renders (the paper's Figs. 4 and 6 show a single cube and several), when present.
+RENDERED = (("frictioncubes", "friction=0.5"), ("multicubes", "bodies=3"), ("polyhedra", "faces=12"), ("contactnets_cube", None))
+
+
+def render_report(root: Path, out_dir: Path) -> list[Path]:
+    """Final-pose figures for the RENDERED variants found under root (else the first variant) and one GIF."""
+    groups: dict[tuple[str, str], list[Path]] = {}
+    for metrics in sorted(Path(root).rglob("test/metrics.json")):
+        run_dir = metrics.parent.parent
+        if (run_dir / ".hydra" / "config.yaml").is_file():
+            summary = json.loads(metrics.read_text())
+            groups.setdefault((summary["dataset"], summary["variant"]), []).append(run_dir)
+    chosen = [key for key in groups if any(key[0] == d and (v is None or key[1] == v) for d, v in RENDERED)] or list(groups)[:1]
+    drawn = []
+    for dataset, variant in chosen:
+        try:
+            rollouts = rerun(groups[(dataset, variant)])
+        except Exception as error:  # noqa: BLE001 - a render is an extra: say why it is missing, keep the report
+            log.warning("no render for %s %s: %s", dataset, variant, error)
+            continue
+        stem = f"{dataset}_{variant or 'recorded'}".replace("=", "").replace(".", "p")
+        drawn.append(final_poses_figure(rollouts, Path(out_dir) / f"final_poses_{stem}.png"))
+        if len(drawn) == 1:
+            drawn.append(rollout_gif(rollouts, Path(out_dir) / f"rollout_{stem}.gif"))
+    return drawn

@@ -1,0 +1,96 @@
+"""Physics switched on in PyBullet and left out of the recordings' meta: hidden truths for testing diagnose.py."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from contactbench.errors import ContactbenchError
+from contactbench.values import freeze_numbers
+
+# The diagnosis library's names; each maps to its PyBullet switch below and its MuJoCo model in SceneEffects.
+EFFECT_NAMES = (
+    "air_drag",
+    "wind",
+    "rolling_friction",
+    "torsional_friction",
+    "anisotropic_friction",
+    "com_offset",
+    "inertia_mismatch",
+    "floor_offset",
+    "floor_tilt",
+)
+# Strength 1 of each effect. The tosses are short and slow (about 1 m/s, 0.15 s of flight, then sliding), so
+# the fluid is dense: at 60 kg/m^3 drag decelerates a sliding cube by about 1 m/s^2 against friction's ~5.
+FLUID_DENSITY = 60.0  # kg/m^3
+
+
+@dataclass(frozen=True)
+class ConcealedEffects:
+    """What PyBullet does beyond the recorded settings; every field at its default leaves PyBullet untouched."""
+
+    fluid_density: float = 0.0  # force -1/2 rho width^2 |u| u on each body's centre of mass, u = v - wind
+    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m/s, world frame
+    rolling_friction: float = 0.0  # PyBullet rollingFriction of every body (m)
+    spinning_friction: float = 0.0  # PyBullet spinningFriction of every body (m)
+    floor_friction_scale: tuple[float, float] = (1.0, 1.0)  # PyBullet anisotropicFriction of the floor along world x, y
+    com_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, body frame: the true centre of mass minus the mesh's
+    inertia_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # true inertia / the mesh's, along the mesh axes
+    floor_offset: float = 0.0  # m, true floor height minus the recorded floor_z
+    floor_tilt: tuple[float, float] = (0.0, 0.0)  # rad, the floor's rotation about world x, then about world y
+
+    def __post_init__(self):
+        freeze_numbers(self, vectors=("wind", "floor_friction_scale", "com_offset", "inertia_scale", "floor_tilt"))
+
+    @classmethod
+    def named(cls, names, strength: float = 1.0) -> "ConcealedEffects":
+        """The effects `names` (from EFFECT_NAMES) at `strength` times their reference size."""
+        unknown = [name for name in names if name not in EFFECT_NAMES]
+        if unknown:
+            raise ContactbenchError(f"effects: unknown effect {unknown[0]!r}; known: {', '.join(EFFECT_NAMES)}")
+        if not strength > 0:
+            raise ContactbenchError(f"effect_strength must be positive, got {strength}")
+        s = float(strength)
+        settings = {}
+        for name in names:
+            if name in ("air_drag", "wind"):
+                settings["fluid_density"] = FLUID_DENSITY
+            if name == "air_drag":
+                settings["fluid_density"] = FLUID_DENSITY * s
+            elif name == "wind":
+                settings["wind"] = (1.0 * s, 0.5 * s, 0.0)
+            elif name == "rolling_friction":
+                settings["rolling_friction"] = 0.005 * s
+            elif name == "torsional_friction":
+                settings["spinning_friction"] = 0.005 * s
+            elif name == "anisotropic_friction":
+                settings["floor_friction_scale"] = (1.0, 1.0 / (1.0 + 0.5 * s))
+            elif name == "com_offset":
+                settings["com_offset"] = (0.012 * s, -0.008 * s, 0.0)
+            elif name == "inertia_mismatch":
+                settings["inertia_scale"] = (1.0 + 0.25 * s, 1.0, 1.0 - 0.15 * s)
+            elif name == "floor_offset":
+                settings["floor_offset"] = 0.008 * s
+            elif name == "floor_tilt":
+                settings["floor_tilt"] = (0.025 * s, -0.012 * s)
+        return cls(**settings)
+
+    def truth(self, names) -> list[dict]:
+        """The hidden values in the diagnosis' parameter names (see contactbench.diagnosis.library)."""
+        values = {
+            "air_drag": {"fluid_density": self.fluid_density},
+            "wind": {"fluid_density": self.fluid_density, "wind_x": self.wind[0], "wind_y": self.wind[1]},
+            "rolling_friction": {"rolling_friction": self.rolling_friction},
+            "torsional_friction": {"torsional_friction": self.spinning_friction},
+            "anisotropic_friction": {"friction_anisotropy": self.floor_friction_scale[0] / self.floor_friction_scale[1]},
+            "com_offset": dict(zip(("com_offset_x", "com_offset_y", "com_offset_z"), self.com_offset)),
+            "inertia_mismatch": dict(zip(("inertia_scale_x", "inertia_scale_y", "inertia_scale_z"), self.inertia_scale)),
+            "floor_offset": {"floor_offset": self.floor_offset},
+            "floor_tilt": {"floor_tilt_x": self.floor_tilt[0], "floor_tilt_y": self.floor_tilt[1]},
+        }
+        return [{"name": name, "parameters": values[name]} for name in names]
+
+    @property
+    def drag(self) -> bool:
+        return self.fluid_density > 0
+
+
+NONE = ConcealedEffects()

@@ -1,0 +1,65 @@
+"""diagnose.py: the pipeline writes its verdict and report, never reads meta.generator, and names a strong effect."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from contactbench import runs
+from contactbench.generation.generator import generate_dataset
+from contactbench.generation.scenes import SceneSpec
+from contactbench.recordings import read_recordings, write_recordings
+from test_pipeline import compose_config, run_entry_point
+
+CUBE = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)
+# Enough tosses and search for a strong effect to stand out; about 20 s per diagnosis on 2 cores.
+SMALL = [
+    "budget=smoke", "budget.diagnose.fit_trajectories=30", "budget.diagnose.val_trajectories=40", "budget.diagnose.base_evaluations=48",
+    "budget.diagnose.lsq_iterations=8", "budget.diagnose.front_runners=2", "budget.diagnose.bootstrap=500",
+]
+SIZES = {"train": 30, "val": 40, "test": 20}
+
+
+def diagnose(path, out_dir, tmp_path, overrides=()):
+    cfg = compose_config("diagnose", [f"recordings={path}", *overrides], tmp_path)
+    verdict = runs.diagnose(cfg, out_dir)
+    return verdict, json.loads((out_dir / "diagnosis.json").read_text())
+
+
+def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_path):
+    source = generate_dataset(CUBE, tmp_path / "tilted", split_sizes={"train": 8, "val": 8, "test": 4}, workers=1, progress=False, effects=("floor_tilt",), effect_strength=2.0)
+    full = read_recordings(source)
+    stripped = full.for_models(list(full.splits))
+    assert "generator" in full.meta and "generator" not in stripped.meta
+    write_recordings(tmp_path / "stripped", stripped)
+    _, with_generator = diagnose(source, tmp_path / "a", tmp_path, ["budget=smoke"])
+    _, without = diagnose(tmp_path / "stripped", tmp_path / "b", tmp_path, ["budget=smoke"])
+    for document in (with_generator, without):
+        document.pop("recordings"), document.pop("seconds")
+    assert with_generator == without  # stripping meta.generator changes nothing
+    assert with_generator["verdict"] in ("effect", "none")
+    assert {"verdict", "effects", "located", "heldout", "candidates"} <= set(with_generator)
+    assert set(with_generator["located"]["phase_shares"]) == {"free", "impact", "sliding", "rolling", "rest"}
+    assert sum(with_generator["located"]["phase_shares"].values()) == pytest.approx(1.0)
+    assert {"base", "augmented", "improvement", "ci95"} <= set(with_generator["heldout"])
+    assert {"pos_err", "rot_err_rad"} <= set(with_generator["heldout"]["base"])
+    report = (tmp_path / "a" / "report.md").read_text()
+    assert "Verdict" in report and (tmp_path / "a" / "figures" / "residual_by_phase.png").stat().st_size > 10_000
+
+
+def test_a_strong_floor_tilt_is_named_and_a_null_dataset_gets_none(tmp_path):
+    null = generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False)
+    tilted = generate_dataset(CUBE, tmp_path / "tilt", split_sizes=SIZES, workers=1, progress=False, effects=("floor_tilt",), effect_strength=2.0)
+    verdict, document = diagnose(tilted, tmp_path / "tilt_out", tmp_path, SMALL)
+    assert verdict == "effect" and [e["name"] for e in document["effects"]] == ["floor_tilt"]
+    fitted = document["effects"][0]["parameters"]
+    assert fitted["floor_tilt_x"] == pytest.approx(0.05, abs=0.02) and fitted["floor_tilt_y"] == pytest.approx(-0.024, abs=0.02)
+    assert document["heldout"]["augmented"]["pos_err"] < document["heldout"]["base"]["pos_err"]
+    verdict, document = diagnose(null, tmp_path / "null_out", tmp_path, SMALL)
+    assert verdict == "none" and document["effects"] == []
+
+
+def test_bad_recordings_path_is_one_clear_line(tmp_path):
+    result = run_entry_point("diagnose.py", [f"recordings={tmp_path}/nowhere", "budget=smoke"], tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith("error:") and "nowhere" in result.stderr and len(result.stderr.strip().splitlines()) == 1
