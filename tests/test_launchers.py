@@ -1,0 +1,29 @@
+"""Scale-out: the cluster launcher config composes to Slurm, and the same sweep runs through submitit locally."""
+from __future__ import annotations
+
+from hydra import compose, initialize_config_dir
+
+from contactbench.config import CONFIG_DIR
+from test_pipeline import run_entry_point
+
+
+def test_cluster_and_local_launcher_configs_compose():
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cluster = compose("train", overrides=["hydra/launcher=cluster"], return_hydra_config=True).hydra.launcher
+        local = compose("train", overrides=["hydra/launcher=local"], return_hydra_config=True).hydra.launcher
+    assert cluster._target_.endswith("SlurmLauncher") and cluster.gpus_per_node == 1 and cluster.cpus_per_task == 8
+    assert local._target_.endswith("JoblibLauncher") and local.n_jobs == 2
+
+
+def test_a_sweep_runs_through_submitit_local(tmp_path):
+    result = run_entry_point(
+        "train.py",
+        ["-m", "hydra/launcher=submitit_local", "model=mujoco_default", "variant=frictioncubes_0,frictioncubes_1", "budget=smoke", "test=true",
+         "generation.split_sizes={train:6,val:4,test:4}", f"hydra.sweep.dir={tmp_path}/sweep"],
+        tmp_path,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = sorted((tmp_path / "sweep").rglob("test/metrics.json"))
+    assert len(metrics) == 2
+    assert list((tmp_path / "sweep" / ".submitit").iterdir())  # submitit ran the jobs, not Hydra's basic launcher
