@@ -26,14 +26,24 @@ def fly(effects: ConcealedEffects, velocity=(2.0, 0.0, 0.0, 0.0, 0.0, 0.0), fram
         return scene.simulate(poses0, np.array([velocity], dtype=float), frames)
 
 
-def test_air_drag_is_quadratic_and_opposes_the_motion():
-    poses, velocities = fly(ConcealedEffects.named(["air_drag"], 1.0))
-    # Semi-implicit Euler: v_{t+1} - v_t = dt (g + F(v_t) / m), F = -1/2 rho w^2 |v| v.
+def test_air_drag_is_quadratic_opposes_the_motion_and_matches_mujocos_fluid_model():
+    poses, velocities = fly(ConcealedEffects.named(["air_drag"], 1.0), velocity=(2.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    # Semi-implicit Euler: v_{t+1} - v_t = dt (g + F(v_t) / m); for an axis-aligned cube F_i = -1/2 rho w^2 |v_i| v_i.
     dv = np.diff(velocities[:, 0, :3], axis=0) / SETTINGS.dt - SETTINGS.gravity
     v = velocities[:-1, 0, :3]
-    expected = -0.5 * 60.0 * WIDTH**2 * np.linalg.norm(v, axis=1, keepdims=True) * v / SETTINGS.mass
+    expected = -0.5 * 60.0 * WIDTH**2 * np.abs(v) * v / SETTINGS.mass
     np.testing.assert_allclose(dv, expected, atol=1e-9)
     assert np.abs(dv).max() > 0.5  # a visible deceleration, not rounding
+    # A tumbling throw: PyBullet with the concealed drag and MuJoCo with its own fluid model fly the same path.
+    throw = (1.5, -0.8, 0.5, 6.0, -4.0, 9.0)
+    orientation = rotations.from_axis_angle(np.array([1.0, 2.0, 3.0]), 0.7)
+    bullet_poses, _ = fly(ConcealedEffects.named(["air_drag"], 2.0), velocity=throw, frames=40, orientation=orientation)
+    rollouts = MujocoRollouts(_dataset_stub(), nthread=1)
+    fluid = ContactParameters((0.5,), 0.0, None, None, effects=SceneEffects(fluid_density=120.0))
+    mujoco_poses = rollouts.simulate([fluid], bullet_poses[None, 0], np.array([[throw]]), 39).poses[0, 0, :, 0]
+    np.testing.assert_allclose(mujoco_poses[:, :3], bullet_poses[1:, 0, :3], atol=2e-4)
+    plain, _ = fly(ConcealedEffects(), velocity=throw, frames=40, orientation=orientation)
+    assert np.abs(plain[-1, 0, :3] - bullet_poses[-1, 0, :3]).max() > 10 * 2e-4  # the drag is what they share
 
 
 def test_wind_pushes_a_body_at_rest_in_the_air():
@@ -71,7 +81,7 @@ def test_floor_offset_and_tilt_move_the_resting_height():
             assert abs(tilt - np.hypot(0.025, 0.012)) < 3e-3
 
 
-def test_mujoco_models_the_floor_offset_and_the_drag_like_pybullet():
+def test_mujoco_models_a_raised_floor():
     data = _dataset_stub()
     rollouts = MujocoRollouts(data, nthread=1)
     base = ContactParameters((0.5,), 0.0, None, None)
@@ -80,15 +90,6 @@ def test_mujoco_models_the_floor_offset_and_the_drag_like_pybullet():
     result = rollouts.simulate([base, raised], start, np.zeros((1, 1, 6)), 140)
     rest = result.poses[:, 0, -1, 0, 2]
     assert abs((rest[1] - rest[0]) - 0.008) < 2e-4
-    # Fluid drag: a cube thrown along x high above the floor loses speed only with a fluid.
-    flying = np.array([[[0.0, 0.0, 3.0, 1.0, 0.0, 0.0, 0.0]]])
-    fluid = ContactParameters((0.5,), 0.0, None, None, effects=SceneEffects(fluid_density=60.0))
-    speed = rollouts.simulate([base, fluid], flying, np.array([[[2.0, 0, 0, 0, 0, 0]]]), 30).qvel[:, 0, -1, 0, 0]
-    assert speed[0] == pytest.approx(2.0)
-    # MuJoCo's box-equivalent drag along a body axis, -1/2 rho w^2 |v_x| v_x, integrates to v0 / (1 + c v0 t / m):
-    # the law the generator applies to |v| v (PyBullet's cube also falls, so there it brakes a little more).
-    c, t = 0.5 * 60.0 * WIDTH**2, 30 * SETTINGS.dt
-    assert speed[1] == pytest.approx(2.0 / (1 + c * 2.0 * t / SETTINGS.mass), rel=0.01)
 
 
 def _dataset_stub():
@@ -118,3 +119,17 @@ def test_every_library_name_has_a_pybullet_switch_and_unknown_names_are_refused(
         assert ConcealedEffects.named([name]) != ConcealedEffects(), name
     with pytest.raises(ContactbenchError, match="unknown effect 'gravity_waves'"):
         ConcealedEffects.named(["gravity_waves"])
+
+
+def test_a_batch_mixing_an_offset_centre_of_mass_with_plain_models_matches_stepping_each_alone():
+    # An offset centre of mass makes MuJoCo lay its data out differently: data made for the plain scene gave NaN.
+    rollouts = MujocoRollouts(_dataset_stub(), nthread=2)
+    plain = ContactParameters((0.5,), 0.0, 1000.0, 50.0)
+    offset = ContactParameters((0.5,), 0.0, 1000.0, 50.0, effects=SceneEffects(com_offset=(0.01, -0.005, 0.0)))
+    poses0 = np.array([[[0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0]]])
+    velocities0 = np.array([[[1.0, 0.0, 0.0, 2.0, 0.0, 3.0]]])
+    mixed = rollouts.simulate([plain, offset], poses0, velocities0, 60)
+    assert not mixed.unstable.any() and np.isfinite(mixed.poses).all()
+    alone = MujocoRollouts(_dataset_stub(), nthread=1).simulate([offset], poses0, velocities0, 60)
+    np.testing.assert_allclose(mixed.poses[1], alone.poses[0], atol=1e-12)
+    assert np.abs(mixed.poses[0] - mixed.poses[1]).max() > 1e-3

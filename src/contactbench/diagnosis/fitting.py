@@ -14,6 +14,7 @@ log = logging.getLogger(__name__)
 # Forward-difference step in the unit box of every parameter: contact makes the residuals piecewise smooth, so the
 # step must be wide enough to see the trend, not a kink.
 DIFFERENCE_STEP = 0.01
+LINE_SEARCH = (1.0, 0.5, 0.25, 0.1, 0.03)
 
 
 class ResidualFit:
@@ -113,7 +114,8 @@ class ResidualFit:
         return lower + unit * span, float(min(losses))
 
     def screen(self, hypothesis: Hypothesis, start: np.ndarray) -> float:
-        """The loss after one bounded Gauss-Newton step from `start`: a cheap screen of how much an effect can explain."""
+        """The loss after one bounded Gauss-Newton step from `start`, shortened by a line search (all step lengths in
+        one batched call): a cheap screen of how much an effect can explain."""
         lower, upper = hypothesis.bounds()
         span = upper - lower
         unit = np.clip((start - lower) / span, 0.0, 1.0)
@@ -122,6 +124,7 @@ class ResidualFit:
         vectors = self.vector(hypothesis, lower + points * span)
         jac = ((vectors[1:] - vectors[0]) / steps[:, None]).T
         step = scipy.optimize.lsq_linear(jac, -vectors[0], bounds=(-unit, 1.0 - unit)).x
-        # The linear model only proposes the step; the score is the loss actually reached there (or not moving).
-        reached = self.loss(hypothesis, lower + np.stack([unit, unit + step]) * span)
+        # The linear model only proposes the direction; the score is the best loss actually reached along it.
+        trials = unit[None, :] + np.array(LINE_SEARCH)[:, None] * step[None, :]
+        reached = self.loss(hypothesis, lower + np.vstack([unit, trials]) * span)
         return float(reached.min())

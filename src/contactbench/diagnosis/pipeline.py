@@ -109,6 +109,8 @@ class Diagnosis:
         table = np.zeros((n_traj, len(PHASES), len(COMPONENTS)))  # per trajectory, phase, component
         for k in range(self.dataset.n_bodies):
             np.add.at(table, (segments.trajectory, segments.phase[:, k]), squared[:, k])
+        # The angular residual in each body's own frame: which body axis the rotation error turns about.
+        body_axes = np.nansum(np.nan_to_num(parts["body_angular"]) ** 2, axis=(0, 1, 2))
         body_totals = np.zeros((n_traj, self.dataset.n_bodies))
         np.add.at(body_totals, segments.trajectory, squared.sum(axis=-1))
         frames = np.zeros((n_traj, len(PHASES)))
@@ -133,6 +135,7 @@ class Diagnosis:
             "cells": {f"{p}/{c}": float(cell[i, j]) for i, p in enumerate(PHASES) for j, c in enumerate(COMPONENTS)},
             "cells_ci95": {f"{p}/{c}": [float(cell_ci[0, i, j]), float(cell_ci[1, i, j])] for i, p in enumerate(PHASES) for j, c in enumerate(COMPONENTS)},
             "body_shares": (body_totals.sum(axis=0) / body_totals.sum()).tolist(),
+            "angular_body_frame_shares": dict(zip("xyz", (body_axes / max(body_axes.sum(), 1e-300)).tolist())),
             "mean_squared_residual_per_segment": {p: float(per_segment[i]) for i, p in enumerate(PHASES)},
             "noise_floor_per_segment": noise,
             "above_noise_floor": {p: bool(per_segment[i] > 3 * noise) for i, p in enumerate(PHASES)},
@@ -264,6 +267,7 @@ def run_diagnosis(dataset: Recordings, budget: Budget = Budget(), decision: Deci
                           "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
                                   "closing >= margin of the base simulator's val loss, and delta BIC < 0 on train"},
         "budget": budget.__dict__,
+        "robust_scale": steps.train_fit.scale,
         "evaluations": steps.train_fit.evaluations + steps.val_fit.evaluations,
         "seconds": {**{k: round(v, 1) for k, v in steps.timings.items()}, "total_s": round(time.perf_counter() - started, 1)},
     }

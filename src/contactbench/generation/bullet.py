@@ -45,7 +45,14 @@ class BulletScene:
         self.effects = effects
         self.inertia_diagonal = np.diag(inertia).copy()
         self.com_offset = np.array(effects.com_offset)
-        self.drag_coefficient = 0.5 * effects.fluid_density * mesh.width**2
+        # Fluid drag by MuJoCo's inertia-box law (its docs, "Fluid forces"): the body acts as the box with its
+        # inertia, half-sizes r; per body axis i, force -2 rho r_j r_k |u_i| u_i and torque
+        # -1/2 rho r_i (r_j^4 + r_k^4) |w_i| w_i, with u the body-frame velocity relative to the wind.
+        true_inertia = self.inertia_diagonal * np.array(effects.inertia_scale)
+        half = np.sqrt(1.5 / settings.mass * np.maximum(true_inertia.sum() - 2 * true_inertia, 0.0))
+        j, k = [1, 0, 0], [2, 2, 1]
+        self.drag_force = 2.0 * effects.fluid_density * half[j] * half[k]
+        self.drag_torque = 0.5 * effects.fluid_density * half * (half[j] ** 4 + half[k] ** 4)
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self.floor, self.bodies = self._build(mesh)
@@ -199,12 +206,16 @@ class BulletScene:
         return states, contacts
 
     def _apply_drag(self, latest: list[tuple]) -> None:
-        """Quadratic fluid drag for the next step, -c |u| u at each centre of mass, u = velocity - wind (world)."""
+        """Fluid force and torque for the next step (see __init__), at each centre of mass."""
         wind = np.array(self.effects.wind)
         for body, (pose, velocity) in zip(self.bodies, zip(latest[::2], latest[1::2])):
-            relative = np.array(velocity[0]) - wind
-            force = -self.drag_coefficient * np.linalg.norm(relative) * relative
+            rotation = rotations.to_matrix(rotations.xyzw_to_wxyz(np.array(pose[1])))
+            relative = rotation.T @ (np.array(velocity[0]) - wind)
+            spin = rotation.T @ np.array(velocity[1])
+            force = rotation @ (-self.drag_force * np.abs(relative) * relative)
+            torque = rotation @ (-self.drag_torque * np.abs(spin) * spin)
             pybullet.applyExternalForce(body, -1, force.tolist(), pose[0], pybullet.WORLD_FRAME, physicsClientId=self.client)
+            pybullet.applyExternalTorque(body, -1, torque.tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client)
 
     def _mesh_frame_states(self, states: np.ndarray) -> np.ndarray:
         """Engine states [T, K, 13] of the centres of mass -> of the mesh frames (position and linear velocity)."""

@@ -99,6 +99,8 @@ class MujocoRollouts:
         if self.nstate != 1 + reference.nq + reference.nv:
             raise ValueError(f"scene has {self.nstate - 1 - reference.nq - reference.nv} unexpected state entries (act/plugin)")
         self._data = [mujoco.MjData(reference) for _ in range(self.nthread)]
+        self._reference_key = structure_key(reference)
+        self._other_data: dict[tuple, list[mujoco.MjData]] = {}
         self._persistent_pool = True
         # A body whose frame origin is lower than this under the floor has no vertex above it.
         self._sunk_depth = np.array(
@@ -108,8 +110,17 @@ class MujocoRollouts:
     def renew_data(self) -> None:
         """Fresh MjData for every thread (after a timed-out call, whose native threads may still hold the old ones)."""
         self._data = [mujoco.MjData(self._data[0].model) for _ in range(self.nthread)]
+        self._other_data.clear()
         # The shared persistent pool may still be busy with the abandoned call: use fresh threads from now on.
         self._persistent_pool = False
+
+    def _data_for(self, key: tuple, model: mujoco.MjModel) -> list[mujoco.MjData]:
+        """Per-thread MjData that fit models of this structure (the reference's, or made once per structure)."""
+        if key == self._reference_key:
+            return self._data
+        if key not in self._other_data:
+            self._other_data[key] = [mujoco.MjData(model) for _ in range(self.nthread)]
+        return self._other_data[key]
 
     def model(self, params: ContactParameters) -> mujoco.MjModel:
         """The compiled scene for `params`, cached (least recently used go first) for repeated parameter sets."""
@@ -149,14 +160,23 @@ class MujocoRollouts:
         n_substeps = n_steps * self.substeps
         states = np.empty((n_batch, n_substeps, self.nstate))
         if n_batch and n_substeps:
-            mujoco.rollout.rollout(
-                [model for model in models for _ in range(len(initial))],
-                self._data,
-                np.tile(initial, (len(models), 1)),
-                nstep=n_substeps,
-                state=states,
-                persistent_pool=self._persistent_pool,
-            )
+            # One native call per group of structurally alike models (usually one group: all of them).
+            groups: dict[tuple, list[int]] = {}
+            for index, model in enumerate(models):
+                groups.setdefault(structure_key(model), []).append(index)
+            for key, members in groups.items():
+                rows = np.concatenate([np.arange(i * len(initial), (i + 1) * len(initial)) for i in members])
+                out = states if len(groups) == 1 else np.empty((len(rows), n_substeps, self.nstate))
+                mujoco.rollout.rollout(
+                    [models[i] for i in members for _ in range(len(initial))],
+                    self._data_for(key, models[members[0]]),
+                    np.tile(initial, (len(members), 1)),
+                    nstep=n_substeps,
+                    state=out,
+                    persistent_pool=self._persistent_pool,
+                )
+                if len(groups) > 1:
+                    states[rows] = out
         frames = states[:, self.substeps - 1 :: self.substeps]
         if self.substeps > 1:  # keep the returned frames, not every substep, alive
             frames = np.ascontiguousarray(frames)
@@ -191,6 +211,13 @@ class MujocoRollouts:
             np.concatenate([np.broadcast_to(context_qvel, leading + context_qvel.shape), result.qvel], axis=2),
             np.concatenate([np.zeros(leading + context.poses.shape[:2], dtype=bool), result.unstable_frames], axis=2),
         )
+
+
+def structure_key(model: mujoco.MjModel) -> tuple:
+    """What MjData's layout depends on beyond the sizes: a body whose centre of mass leaves its frame origin (an
+    offset centre of mass) is no longer "simple", and MuJoCo then needs other sparse-matrix space; stepping such a
+    model with data made for a simple one returns NaN."""
+    return (int(model.nC), tuple(model.body_simple.tolist()), tuple(model.dof_simplenum.tolist()))
 
 
 def mechanical_energy(dataset: Recordings, poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
