@@ -113,6 +113,19 @@ class ResidualFit:
         unit = result.x if losses[1] <= losses[0] else unit0
         return lower + unit * span, float(min(losses))
 
+    def best_start(self, hypothesis: Hypothesis, start: np.ndarray, free: int) -> np.ndarray:
+        """`start`, or a point with one of the last `free` parameters moved to a quartile of its range, whichever
+        has the least loss (one batched call): least squares is local, and an effect's optimum may lie far from off."""
+        lower, upper = hypothesis.bounds()
+        points = [start]
+        for index in range(len(start) - free, len(start)):
+            for quartile in (0.25, 0.75):
+                moved = start.copy()
+                moved[index] = lower[index] + quartile * (upper[index] - lower[index])
+                points.append(moved)
+        points = np.stack(points)
+        return points[int(np.argmin(self.loss(hypothesis, points)))]
+
     def screen(self, hypothesis: Hypothesis, start: np.ndarray) -> float:
         """The loss after one bounded Gauss-Newton step from `start`, shortened by a line search (all step lengths in
         one batched call): a cheap screen of how much an effect can explain."""

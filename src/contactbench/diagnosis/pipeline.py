@@ -27,7 +27,7 @@ class Budget:
     base_evaluations: int = 160  # NGOpt evaluations of the base parameters before least squares
     batch: int = 16  # candidates per batched rollout in the global search
     lsq_iterations: int = 12  # least-squares function evaluations per fit (each Jacobian adds one batch)
-    front_runners: int = 3  # effects fitted in full after screening, per round
+    front_runners: int = 9  # effects fitted in full after screening, per round (9: the whole library)
     max_effects: int = 2
     bootstrap: int = 1000
 
@@ -184,7 +184,8 @@ class Diagnosis:
             fitted = []
             for screened_loss, effect in screened[: self.budget.front_runners]:
                 trial = current.with_effect(effect)
-                trial_values, train_loss = self.train_fit.least_squares(trial, trial.start(current, values), self.budget.lsq_iterations)
+                start = self.train_fit.best_start(trial, trial.start(current, values), len(effect.parameters))
+                trial_values, train_loss = self.train_fit.least_squares(trial, start, self.budget.lsq_iterations)
                 val = self.val_losses(trial, trial_values)
                 improvement, ci = bootstrap_ratio(current_val, val, self.budget.bootstrap, self.rng, self.decision.confidence)
                 extra = len(trial.parameters) - len(current.parameters)
