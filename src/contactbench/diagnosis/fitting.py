@@ -113,9 +113,19 @@ class ResidualFit:
         unit = result.x if losses[1] <= losses[0] else unit0
         return lower + unit * span, float(min(losses))
 
+    def fit_effect(self, hypothesis: Hypothesis, start: np.ndarray, free: int, iterations: int) -> tuple[np.ndarray, float]:
+        """Least squares from `start` and from the best point of a quartile grid over the last `free` parameters (the
+        effect's); the better fit wins. Least squares is local: an effect's optimum may lie far from "off" (a raised
+        floor), but a coarse grid can also land beside a valley that the plain start descends into (a tilted floor)."""
+        fits = [self.least_squares(hypothesis, start, iterations)]
+        grid_start = self.best_start(hypothesis, start, free)
+        if not np.array_equal(grid_start, start):
+            fits.append(self.least_squares(hypothesis, grid_start, iterations))
+        return min(fits, key=lambda fit: fit[1])
+
     def best_start(self, hypothesis: Hypothesis, start: np.ndarray, free: int) -> np.ndarray:
         """`start`, or a point with one of the last `free` parameters moved to a quartile of its range, whichever
-        has the least loss (one batched call): least squares is local, and an effect's optimum may lie far from off."""
+        has the least loss (one batched call)."""
         lower, upper = hypothesis.bounds()
         points = [start]
         for index in range(len(start) - free, len(start)):

@@ -184,8 +184,7 @@ class Diagnosis:
             fitted = []
             for screened_loss, effect in screened[: self.budget.front_runners]:
                 trial = current.with_effect(effect)
-                start = self.train_fit.best_start(trial, trial.start(current, values), len(effect.parameters))
-                trial_values, train_loss = self.train_fit.least_squares(trial, start, self.budget.lsq_iterations)
+                trial_values, train_loss = self.train_fit.fit_effect(trial, trial.start(current, values), len(effect.parameters), self.budget.lsq_iterations)
                 val = self.val_losses(trial, trial_values)
                 improvement, ci = bootstrap_ratio(current_val, val, self.budget.bootstrap, self.rng, self.decision.confidence)
                 extra = len(trial.parameters) - len(current.parameters)
@@ -207,8 +206,8 @@ class Diagnosis:
                 records.append(record)
                 fitted.append((record, trial, trial_values, val, train_loss))
                 log.info("  %s: val improvement %.3f [%.3f, %.3f], dBIC %.0f -> %s", effect.name, improvement, *ci, delta_bic, "passes" if record["passes"] else "no")
-            for _, effect in screened[self.budget.front_runners :]:
-                records.append({"name": effect.name, "round": round_ + 1, "screen_train_loss": _, "val_improvement": None, "ci95": None, "passes": False, "screened_out": True})
+            for screened_loss, effect in screened[self.budget.front_runners :]:
+                records.append({"name": effect.name, "round": round_ + 1, "screen_train_loss": screened_loss, "val_improvement": None, "ci95": None, "passes": False, "screened_out": True})
             passing = [item for item in fitted if item[0]["passes"]]
             if not passing:
                 break
