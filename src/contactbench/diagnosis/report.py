@@ -38,9 +38,12 @@ def summary_sentence(document: dict) -> str:
         return (f"No candidate effect improved the fit significantly and by the margin; the remaining mismatch lives in "
                 f"{where} (held-out position error {held['base']['pos_err']:.4f} widths).")
     names = " and ".join(f"{e['name']} ({e['physics']})" for e in document["effects"])
-    return (f"Missing: {names}; modelling it cut the held-out position error from {held['base']['pos_err']:.4f} to "
-            f"{held['augmented']['pos_err']:.4f} widths ({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to "
-            f"{held['ci95'][1]:.1%}); what remains lives in {document['located_after']['where']}.")
+    held_text = (f"held-out position error {held['base']['pos_err']:.4f} -> {held['augmented']['pos_err']:.4f} widths "
+                 f"({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%})")
+    if not held["confirmed"]:
+        return (f"Val data point to {names}, but the held-out test does not confirm it ({held_text}): treat it as "
+                f"unproven; the mismatch lives in {document['located']['where']}.")
+    return f"Missing: {names}; modelling it changed the {held_text}; what remains lives in {document['located_after']['where']}."
 
 
 def _markdown(document: dict, figures: list[Path]) -> str:
