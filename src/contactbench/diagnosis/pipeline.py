@@ -259,7 +259,6 @@ def run_diagnosis(dataset: Recordings, budget: Budget = Budget(), decision: Deci
         "heldout": {
             "split": "test",
             "confirmed": bool(effects) and ci[0] > 0,  # the held-out interval excludes no improvement
-            "confirmed": bool(effects) and ci[0] > 0,
             "n_trajectories": int(len(before["pos_err"])),
             "base": {"pos_err": float(before["pos_err"].mean()), "rot_err_rad": float(before["rot_err_rad"].mean())},
             "augmented": {"pos_err": float(after["pos_err"].mean()), "rot_err_rad": float(after["rot_err_rad"].mean())},
