@@ -133,3 +133,10 @@ def test_a_batch_mixing_an_offset_centre_of_mass_with_plain_models_matches_stepp
     alone = MujocoRollouts(_dataset_stub(), nthread=1).simulate([offset], poses0, velocities0, 60)
     np.testing.assert_allclose(mixed.poses[1], alone.poses[0], atol=1e-12)
     assert np.abs(mixed.poses[0] - mixed.poses[1]).max() > 1e-3
+
+
+def test_wind_and_air_drag_together_do_not_depend_on_their_order():
+    both = ConcealedEffects.named(["air_drag", "wind"], 2.0)
+    assert both == ConcealedEffects.named(["wind", "air_drag"], 2.0)
+    assert both.fluid_density == 120.0 and both.wind == (2.0, 1.0, 0.0)
+    assert ConcealedEffects.named(["wind"], 2.0).fluid_density == 60.0

@@ -37,25 +37,37 @@ class ResidualFit:
                 self.simulator.rollouts.model(candidate)  # compiles: MuJoCo may refuse, e.g. an impossible inertia
                 params.append(candidate)
                 valid.append(True)
-            except (ValueError, Exception) as error:  # noqa: BLE001 - any refusal is a bad candidate, not a crash
+            except Exception as error:  # noqa: BLE001 - any refusal is a bad candidate, not a crash
                 log.debug("candidate rejected: %s", error)
                 valid.append(False)
-        segments = self.simulator.segments
-        out = np.full((len(internal), segments.count, segments.length, segments.truth.shape[2], 6), UNSTABLE_RESIDUAL)
+        out = np.full((len(internal), *self.simulator.segments.truth.shape[:3], 6), UNSTABLE_RESIDUAL)
         if params:
             out[np.array(valid)] = self.simulator.residuals(params)
         self.evaluations += len(internal)
         return out
 
+    @property
+    def entries(self) -> int:
+        """Residual 6-vectors per parameter set: segments x frames x bodies."""
+        return int(np.prod(self.simulator.segments.truth.shape[:3]))
+
     def vector(self, hypothesis: Hypothesis, internal: np.ndarray) -> np.ndarray:
         """Flat residual vectors [B, R] whose squared norm is the mean squared residual."""
         residuals = self.residuals(hypothesis, internal)
-        return residuals.reshape(len(residuals), -1) / np.sqrt(residuals[0].size / 6)
+        return residuals.reshape(len(residuals), -1) / np.sqrt(self.entries)
 
     def loss(self, hypothesis: Hypothesis, internal: np.ndarray) -> np.ndarray:
         """Mean robust loss per parameter vector [B]."""
         residuals = self.residuals(hypothesis, internal)
-        return self.robust(residuals).reshape(len(residuals), -1).sum(axis=-1) / (residuals[0].size / 6)
+        return self.robust(residuals).reshape(len(residuals), -1).sum(axis=-1) / self.entries
+
+    def _jacobian(self, hypothesis: Hypothesis, unit: np.ndarray, at_unit: np.ndarray) -> np.ndarray:
+        """Forward differences [R, P] around `unit` (whose residual vector is `at_unit`), all steps in one batched
+        call; a step that would leave the unit box goes the other way."""
+        lower, upper = hypothesis.bounds()
+        steps = np.where(unit + DIFFERENCE_STEP <= 1.0, DIFFERENCE_STEP, -DIFFERENCE_STEP)
+        shifted = unit[None, :] + np.diag(steps)
+        return ((self.vector(hypothesis, lower + shifted * (upper - lower)) - at_unit[None, :]) / steps[:, None]).T
 
     def robust(self, residuals: np.ndarray) -> np.ndarray:
         """Per-entry loss: r^2, or soft L1 2 f^2 (sqrt(1 + (r/f)^2) - 1), which is r^2 for small r."""
@@ -98,16 +110,11 @@ class ResidualFit:
                 cache[key] = self.vector(hypothesis, lower + unit * span)[0]
             return cache[key]
 
-        def jacobian(unit: np.ndarray) -> np.ndarray:
-            steps = np.where(unit + DIFFERENCE_STEP <= 1.0, DIFFERENCE_STEP, -DIFFERENCE_STEP)
-            shifted = unit[None, :] + np.diag(steps)
-            return ((self.vector(hypothesis, lower + shifted * span) - value(unit)[None, :]) / steps[:, None]).T
-
         unit0 = np.clip((start - lower) / span, 0.0, 1.0)
-        n_entries = self.simulator.segments.truth[..., :3].size * 2 // 6
-        loss_kind = ("linear", 1.0) if self.scale is None else ("soft_l1", self.scale / np.sqrt(n_entries))
+        loss_kind = ("linear", 1.0) if self.scale is None else ("soft_l1", self.scale / np.sqrt(self.entries))
         result = scipy.optimize.least_squares(
-            value, unit0, jac=jacobian, bounds=(0.0, 1.0), method="trf", max_nfev=iterations, x_scale=1.0, loss=loss_kind[0], f_scale=loss_kind[1]
+            value, unit0, jac=lambda unit: self._jacobian(hypothesis, unit, value(unit)), bounds=(0.0, 1.0), method="trf",
+            max_nfev=iterations, x_scale=1.0, loss=loss_kind[0], f_scale=loss_kind[1],
         )
         losses = self.loss(hypothesis, lower + np.stack([unit0, result.x]) * span)
         unit = result.x if losses[1] <= losses[0] else unit0
@@ -142,11 +149,8 @@ class ResidualFit:
         lower, upper = hypothesis.bounds()
         span = upper - lower
         unit = np.clip((start - lower) / span, 0.0, 1.0)
-        steps = np.where(unit + DIFFERENCE_STEP <= 1.0, DIFFERENCE_STEP, -DIFFERENCE_STEP)
-        points = np.vstack([unit, unit[None, :] + np.diag(steps)])
-        vectors = self.vector(hypothesis, lower + points * span)
-        jac = ((vectors[1:] - vectors[0]) / steps[:, None]).T
-        step = scipy.optimize.lsq_linear(jac, -vectors[0], bounds=(-unit, 1.0 - unit)).x
+        at_unit = self.vector(hypothesis, (lower + unit * span)[None])[0]
+        step = scipy.optimize.lsq_linear(self._jacobian(hypothesis, unit, at_unit), -at_unit, bounds=(-unit, 1.0 - unit)).x
         # The linear model only proposes the direction; the score is the best loss actually reached along it.
         trials = unit[None, :] + np.array(LINE_SEARCH)[:, None] * step[None, :]
         reached = self.loss(hypothesis, lower + np.vstack([unit, trials]) * span)

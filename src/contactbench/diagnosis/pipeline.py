@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench.diagnosis.fitting import ResidualFit
-from contactbench.diagnosis.library import Effect, Hypothesis, library
+from contactbench.diagnosis.library import Hypothesis, library
 from contactbench.diagnosis.phases import PHASES, FREE, label_phases
-from contactbench.diagnosis.segments import COMPONENTS, SegmentSimulator, Segments, cut_segments, residual_parts
+from contactbench.diagnosis.segments import COMPONENTS, SegmentSimulator, cut_segments, residual_parts
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model
 from contactbench.models.analytical import MujocoContactModel
@@ -169,7 +169,7 @@ class Diagnosis:
         current, values = base, base_values
         current_val = base_val = self.val_losses(current, values)
         current_train = float(self.train_fit.loss(current, values[None])[0])
-        n_residuals = self.train_fit.simulator.segments.truth[..., :3].size * 2
+        n_residuals = 6 * self.train_fit.entries
         records: list[dict] = []
         for round_ in range(self.budget.max_effects):
             remaining = [e for e in self.library.values() if e.name not in current.names]

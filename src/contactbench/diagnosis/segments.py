@@ -48,28 +48,27 @@ def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: in
     trajectory, start = np.concatenate(trajectory), np.concatenate(start)
     window = start[:, None] + np.arange(1, length + 1)[None, :]
     truth = split.poses[trajectory[:, None], window]
-    segment_labels = labels[trajectory[:, None], window]  # [M, L, K]
-    phase = np.array([[_dominant(segment_labels[m, :, k]) for k in range(split.n_bodies)] for m in range(len(start))], dtype=np.int8)
+    # The phase a body spends a segment in: impact if it has one anywhere, else its most frequent phase.
+    counts = (labels[trajectory[:, None], window][..., None] == np.arange(len(PHASES))).sum(axis=1)  # [M, K, phases]
+    phase = np.where(counts[..., IMPACT] > 0, IMPACT, counts.argmax(axis=-1)).astype(np.int8)
     return Segments(trajectory, start, split.poses[trajectory, start], velocities[trajectory, start], truth, phase, length, dataset.widths())
 
 
-def _dominant(labels: np.ndarray) -> int:
-    if (labels == IMPACT).any():
-        return IMPACT
-    return int(np.bincount(labels[labels >= 0], minlength=len(PHASES)).argmax())
-
-
-def residual_parts(segments: Segments, predicted: np.ndarray) -> dict[str, np.ndarray]:
-    """Residual components [..., M, L, K] of predicted poses [..., M, L, K, 7]: position over half the width
-    (as in eq. 1), rotation in rad; world normal/tangential parts and the body-frame rotation vector [..., 3]."""
+def residual_vectors(segments: Segments, predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position residual over half the width (as in eq. 1) and rotation vector (rad), world frame, each
+    [..., M, L, K, 3], of predicted poses [..., M, L, K, 7]: all a fit needs."""
     truth = segments.truth
     linear = (predicted[..., :3] - truth[..., :3]) / (segments.widths[:, None] / 2)
     angular = rotations.to_rotation_vector(rotations.multiply(predicted[..., 3:], rotations.conjugate(truth[..., 3:])))
-    body_angular = rotations.rotate(rotations.conjugate(truth[..., 3:]), angular)
+    return linear, angular
+
+
+def residual_parts(segments: Segments, predicted: np.ndarray) -> dict[str, np.ndarray]:
+    """The residual broken down for locating it: the COMPONENTS [..., M, L, K] (world normal/tangential parts)
+    and the rotation vector in the body frame, "body_angular" [..., M, L, K, 3]."""
+    linear, angular = residual_vectors(segments, predicted)
     return {
-        "linear": linear,
-        "angular": angular,
-        "body_angular": body_angular,
+        "body_angular": rotations.rotate(rotations.conjugate(segments.truth[..., 3:]), angular),
         "linear_normal": np.abs(linear[..., 2]),
         "linear_tangential": np.linalg.norm(linear[..., :2], axis=-1),
         "angular_normal": np.abs(angular[..., 2]),
@@ -92,8 +91,7 @@ class SegmentSimulator:
     def residuals(self, params: list[ContactParameters]) -> np.ndarray:
         """[B, M, L, K, 6]: position residual over half the width, rotation residual (rad), per frame and body."""
         poses, unstable = self.predict(params)
-        parts = residual_parts(self.segments, poses)
-        stacked = np.concatenate([parts["linear"], parts["angular"]], axis=-1)
+        stacked = np.concatenate(residual_vectors(self.segments, poses), axis=-1)
         stacked[unstable] = UNSTABLE_RESIDUAL
         return np.nan_to_num(stacked, nan=UNSTABLE_RESIDUAL, posinf=UNSTABLE_RESIDUAL, neginf=-UNSTABLE_RESIDUAL)
 

@@ -53,11 +53,10 @@ class ConcealedEffects:
         s = float(strength)
         settings = {}
         for name in names:
-            if name in ("air_drag", "wind"):
-                settings["fluid_density"] = FLUID_DENSITY
             if name == "air_drag":
                 settings["fluid_density"] = FLUID_DENSITY * s
-            elif name == "wind":
+            elif name == "wind":  # wind blows through a fluid: air_drag's if it is named too, else the reference one
+                settings.setdefault("fluid_density", FLUID_DENSITY)
                 settings["wind"] = (1.0 * s, 0.5 * s, 0.0)
             elif name == "rolling_friction":
                 settings["rolling_friction"] = 0.01 * s
