@@ -6,6 +6,7 @@ from dataclasses import replace
 import nevergrad as ng
 import numpy as np
 import pytest
+import torch
 
 from contactbench.config import REPO_ROOT
 from contactbench.models.base import make_context
@@ -85,3 +86,45 @@ def test_ngopt_runs_the_whole_quick_budget(tmp_path):
     stop_recast_threads()
     assert optimizer.num_tell == -(-h.evaluations // h.num_workers) * h.num_workers
     assert np.all(np.abs(best - target) / scale < 0.1)
+
+
+class _Killed(RuntimeError):
+    pass
+
+
+def _search_run(dataset, root, kill_at=None, resume=False):
+    """A tiny two-restart SysID search; kill_at=(restart, generation) stops it right after that checkpoint."""
+    import pytorch_lightning as pl
+
+    from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
+
+    class Search(NevergradSearch):
+        def on_train_batch_start(self, trainer, module, batch, batch_index):
+            super().on_train_batch_start(trainer, module, batch, batch_index)
+            if kill_at == (self.restart, self.generation):
+                raise _Killed  # like SIGKILL: the checkpoint of this generation is all that survives
+
+    options = {"evaluations": 24, "restarts": 2, "num_workers": 4, "batch_trajectories": 4, "val_trajectories": 4, "nthread": 1}
+    module = SysIDModule(dataset, context_frames=6, **options)
+    search = Search()
+    trainer = pl.Trainer(
+        max_epochs=-1, limit_val_batches=0, enable_checkpointing=False, logger=False, enable_progress_bar=False,
+        enable_model_summary=False, callbacks=[search], default_root_dir=str(root),
+    )
+    checkpoint = root / "checkpoints" / "last.ckpt"
+    trainer.fit(module, datamodule=SysIDDataModule(dataset, 6, generations=12), ckpt_path=str(checkpoint) if resume else None, weights_only=True)
+    return module, search
+
+
+def test_a_killed_search_resumes_bit_identically_from_numbers_only(mujoco_made_cube, tmp_path):
+    """The checkpoint holds no pickled optimiser: the resumed run replays its history and ends exactly as an uninterrupted one."""
+    dataset, _ = mujoco_made_cube
+    whole, whole_search = _search_run(dataset, tmp_path / "whole")
+    with pytest.raises(_Killed):
+        _search_run(dataset, tmp_path / "killed", kill_at=(0, 3))
+    (state,) = torch.load(tmp_path / "killed" / "checkpoints" / "last.ckpt", weights_only=True)["callbacks"].values()
+    assert state["generation"] == 3 and state["asked"].shape == (12, 4) and state["losses"].dtype == torch.float64
+    resumed, resumed_search = _search_run(dataset, tmp_path / "killed", resume=True)
+    assert resumed_search.evaluations == whole_search.evaluations == 48
+    assert resumed_search.results == whole_search.results  # exact floats: recommendations and val losses of both restarts
+    assert torch.equal(resumed.selected, whole.selected)

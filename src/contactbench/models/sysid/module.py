@@ -1,10 +1,8 @@
 """SysID as a non-gradient Lightning run: trainer.fit ticks, the NevergradSearch callback asks, rolls out and tells."""
 from __future__ import annotations
 
-import io
 import logging
 import os
-import pickle
 import threading
 from pathlib import Path
 
@@ -15,6 +13,7 @@ import torch
 from nevergrad.optimization import recaster
 from torch.utils.data import DataLoader
 
+from contactbench.errors import ContactbenchError
 from contactbench.models.analytical import MujocoContactModel
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import SearchSpace
@@ -96,8 +95,9 @@ class NevergradSearch(pl.Callback):
 
     Per generation: ask `num_workers` candidates, roll all of them out on one mini-batch of train trajectories in a
     single batched MuJoCo call, tell the losses. After each restart its recommendation is scored on val; the restart
-    with the best val score is selected (paper §4.2). The optimiser's pickled state, the restart results and the
-    counters live in the checkpoint, so a killed run resumes where it stopped.
+    with the best val score is selected (paper §4.2). The checkpoint holds numbers only: the counters, the restart
+    results and the current restart's ask/tell history. A resumed run re-creates the optimiser from its seed and
+    replays that history, so it continues bit-identically without ever unpickling anything from a run folder.
     """
 
     def __init__(self):
@@ -107,6 +107,9 @@ class NevergradSearch(pl.Callback):
         self.evaluations = 0
         self.unstable = 0
         self.results: list[dict] = []  # per finished restart: its recommended parameter vector and val loss
+        # The current restart's history, in ask order: standardized candidate data and the loss told for it.
+        self.asked: list[np.ndarray] = []
+        self.losses: list[float] = []
 
     # ------------------------------------------------------------ lifecycle
 
@@ -135,11 +138,13 @@ class NevergradSearch(pl.Callback):
             return
         if self.optimizer is None:
             self.optimizer = self._new_optimizer(module)
-        remaining = h.evaluations - self.generation * h.num_workers
-        candidates = [self.optimizer.ask() for _ in range(min(h.num_workers, remaining))]
+            self._replay(module)
+        candidates = [self.optimizer.ask() for _ in range(self._generation_size(module, self.generation))]
         indices = self._batch(module)
         result = self.train_objective([module.space.to_parameters(c.value) for c in candidates], indices)
         for candidate, loss in zip(candidates, result.losses):
+            self.asked.append(candidate.get_standardized_data(reference=self.optimizer.parametrization))
+            self.losses.append(float(loss))
             self.optimizer.tell(candidate, float(loss))
         self.generation += 1
         self.evaluations += len(candidates)
@@ -169,6 +174,33 @@ class NevergradSearch(pl.Callback):
         space = module.space.parametrization(seed=h.seed * 1000 + self.restart)
         return ng.optimizers.registry[h.optimizer](parametrization=space, budget=h.evaluations, num_workers=h.num_workers)
 
+    @staticmethod
+    def _generation_size(module: SysIDModule, generation: int) -> int:
+        h = module.hparams
+        return min(h.num_workers, h.evaluations - generation * h.num_workers)
+
+    def _replay(self, module: SysIDModule) -> None:
+        """Bring a fresh optimiser to where the checkpointed one was: the same asks, told the recorded losses."""
+        expected = sum(self._generation_size(module, g) for g in range(self.generation))
+        if len(self.losses) != expected:
+            raise ContactbenchError(
+                f"checkpoint search state: {len(self.losses)} recorded evaluations in restart {self.restart} "
+                f"(expected {expected} for generation {self.generation} with these settings); resume=false starts over"
+            )
+        recorded = iter(zip(self.asked, self.losses))
+        for generation in range(self.generation):
+            candidates = [self.optimizer.ask() for _ in range(self._generation_size(module, generation))]
+            for candidate in candidates:
+                asked, loss = next(recorded)
+                data = candidate.get_standardized_data(reference=self.optimizer.parametrization)
+                # Bitwise: anything less and the continuation would silently differ from the uninterrupted run.
+                if data.shape != asked.shape or not np.array_equal(data, asked):
+                    raise ContactbenchError(
+                        f"checkpoint search state: the re-created optimiser asks other candidates than the recorded ones "
+                        f"(restart {self.restart}, generation {generation}; another nevergrad version?); resume=false starts over"
+                    )
+                self.optimizer.tell(candidate, loss)
+
     def _batch(self, module: SysIDModule) -> np.ndarray:
         h = module.hparams
         n = self.train_objective.n_trajectories
@@ -188,6 +220,7 @@ class NevergradSearch(pl.Callback):
         log.info("SysID restart %d/%d: val loss %.5f with %s", self.restart + 1, h.restarts, val_loss, module.space.describe(recommendation))
         stop_recast_threads()
         self.optimizer = None
+        self.asked, self.losses = [], []
         self.restart += 1
         self.generation = 0
         best = min(self.results, key=lambda r: r["val_loss"])
@@ -203,23 +236,88 @@ class NevergradSearch(pl.Callback):
 
     # ------------------------------------------------------------ checkpointing
 
+    @staticmethod
+    def check_state(state: object, where: str) -> None:
+        """Checked before a resume loads anything (contactbench.folders.check_checkpoint)."""
+        check_search_state(state, where)
+
     def state_dict(self) -> dict:
-        optimizer = b"" if self.optimizer is None else pickle.dumps(self.optimizer)
         return {
-            "optimizer": torch.frombuffer(bytearray(optimizer), dtype=torch.uint8) if optimizer else torch.zeros(0, dtype=torch.uint8),
             "restart": self.restart,
             "generation": self.generation,
             "evaluations": self.evaluations,
             "unstable": self.unstable,
             "results": self.results,
+            "asked": torch.from_numpy(np.stack(self.asked).astype(np.float64) if self.asked else np.zeros((0, 0))),
+            "losses": torch.tensor(self.losses, dtype=torch.float64),
         }
 
     def load_state_dict(self, state: dict) -> None:
-        payload = state["optimizer"].numpy().tobytes()
-        # The optimiser state is this run's own checkpoint (written above), never a downloaded file.
-        self.optimizer = pickle.load(io.BytesIO(payload)) if payload else None
+        check_search_state(state, "checkpoint search state")
+        self.optimizer = None  # re-created and replayed at the next step, when the module's settings are at hand
         self.restart = int(state["restart"])
         self.generation = int(state["generation"])
         self.evaluations = int(state["evaluations"])
         self.unstable = int(state["unstable"])
-        self.results = list(state["results"])
+        self.results = [{"vector": [float(x) for x in r["vector"]], "val_loss": float(r["val_loss"])} for r in state["results"]]
+        self.asked = list(state["asked"].numpy().copy())
+        self.losses = [float(x) for x in state["losses"].tolist()]
+
+
+COUNTERS = ("restart", "generation", "evaluations", "unstable")
+SEARCH_STATE_FIELDS = (*COUNTERS, "results", "asked", "losses")
+
+
+def check_search_state(state: object, where: str) -> None:
+    """Refuse anything but the numbers-only search state that NevergradSearch.state_dict writes."""
+
+    def fail(field: str, problem: str, expected: str) -> ContactbenchError:
+        return ContactbenchError(f"{where}: field '{field}' {problem} (expected {expected})")
+
+    if not isinstance(state, dict):
+        raise ContactbenchError(f"{where}: is a {type(state).__name__} (expected a dict of counters, results and history)")
+    if "optimizer" in state:
+        raise fail(
+            "optimizer", "holds serialized optimiser bytes (an older contactbench or a crafted file); loading them would "
+            "mean unpickling", "the numbers-only search state; resume=false starts over",
+        )
+    unknown = sorted(set(state) - set(SEARCH_STATE_FIELDS), key=str)
+    if unknown:
+        raise fail(str(unknown[0]), "is not part of the search state", f"only {', '.join(SEARCH_STATE_FIELDS)}")
+    for name in SEARCH_STATE_FIELDS:
+        if name not in state:
+            raise fail(name, "is missing", "the numbers-only search state; resume=false starts over")
+    for name in COUNTERS:
+        value = state[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise fail(name, f"is {value!r}", "a non-negative integer")
+    results = state["results"]
+    if not isinstance(results, list) or len(results) != state["restart"]:
+        size = f" of {len(results)} entries" if isinstance(results, list) else ""
+        raise fail("results", f"is a {type(results).__name__}{size}", f"a list with one entry per finished restart ({state['restart']})")
+    for k, entry in enumerate(results):
+        if (
+            not isinstance(entry, dict)
+            or set(entry) != {"vector", "val_loss"}
+            or not isinstance(entry["vector"], list)
+            or not all(_is_number(x) for x in entry["vector"])
+            or not _is_number(entry["val_loss"])
+        ):
+            raise fail(f"results[{k}]", "is malformed", "{'vector': [numbers], 'val_loss': number}")
+    asked, losses = state["asked"], state["losses"]
+    if not isinstance(asked, torch.Tensor) or asked.dtype != torch.float64 or asked.ndim != 2:
+        raise fail("asked", f"is {_describe(asked)}", "a float64 tensor [evaluations, dimensions]")
+    if not isinstance(losses, torch.Tensor) or losses.dtype != torch.float64 or losses.shape != (asked.shape[0],):
+        raise fail("losses", f"is {_describe(losses)}", f"a float64 tensor [{asked.shape[0]}], one loss per asked candidate")
+    if not (torch.isfinite(asked).all() and torch.isfinite(losses).all()):
+        raise fail("asked" if not torch.isfinite(asked).all() else "losses", "holds NaN or infinite values", "finite numbers")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _describe(value: object) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"a {value.dtype} tensor of shape {tuple(value.shape)}"
+    return f"a {type(value).__name__}"
