@@ -1,14 +1,18 @@
 """Generate benchmark datasets with PyBullet: python generate.py dataset=multicubes bodies=3."""
+from pathlib import Path
+
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from contactbench import runs
+from contactbench import folders, runs
 from contactbench.cli import guarded
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="generate")
 @guarded
 def main(cfg: DictConfig) -> None:
+    folders.claim(cfg, Path(HydraConfig.get().runtime.output_dir), "generate")  # its log folder, not the dataset's
     runs.generate(cfg)
 
 

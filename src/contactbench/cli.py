@@ -10,6 +10,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 
 from contactbench.errors import ContactbenchError
+from contactbench.folders import FolderRefused
 
 log = logging.getLogger("contactbench")
 
@@ -28,8 +29,12 @@ def guarded(main):
                 raise
             message = f"error: {error}"
             if _in_multirun():
-                # One bad job (e.g. the hybrid model on a multi-body variant) must not stop the sweep.
-                log.error("%s (job skipped)", message)
+                # One bad job (e.g. the hybrid model on a multi-body variant) must not stop the sweep. A refused
+                # folder is another run's: its log file is not written either.
+                if isinstance(error, FolderRefused):
+                    print(f"{message} (job skipped)", file=sys.stderr)
+                else:
+                    log.error("%s (job skipped)", message)
                 return None
             print(message, file=sys.stderr)
             sys.exit(2)

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytorch_lightning as pl
 import torch
 from hydra.utils import get_class, instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from contactbench import atomic, tracking
+from contactbench import atomic, folders, tracking
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
@@ -69,26 +69,6 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
 # ---------------------------------------------------------------- models
 
 
-def run_signature(cfg: DictConfig) -> dict:
-    """What makes a fitted model what it is; a run folder only resumes or serves a model with the same signature."""
-    return {
-        "model": OmegaConf.to_container(cfg.model, resolve=True),
-        "dataset": str(cfg.dataset.path),
-        "context_frames": int(cfg.context_frames),
-        "seed": int(cfg.seed),
-    }
-
-
-def _check_signature(cfg: DictConfig, run_dir: Path, action: str) -> None:
-    recorded = run_dir / "signature.json"
-    if recorded.is_file() and json.loads(recorded.read_text()) != json.loads(json.dumps(run_signature(cfg))):
-        raise ContactbenchError(
-            f"{recorded}: the run there was made with other settings (model, budget, dataset, context_frames or seed) "
-            f"than this command; cannot {action} it. Use another folder (hydra.run.dir=...)"
-            + (" or resume=false to start over" if action == "resume" else "")
-        )
-
-
 def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
     kind = cfg.model.kind
     if kind == "analytical":
@@ -116,10 +96,8 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     last = checkpoint_dir / "last.ckpt"
     resume_from = str(last) if cfg.resume and last.exists() else None
     if resume_from:
-        _check_signature(cfg, output_dir, "resume")
-        log.info("resuming from %s", resume_from)
-    atomic.write_json(output_dir / "signature.json", run_signature(cfg))
-    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from)
+        log.info("resuming from %s", resume_from)  # folders.claim has checked its signature and contents
+    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     checkpoint = Path(best_path).name if best_path else "last.ckpt"
     module = _load_module(cfg, dataset, checkpoint_dir / checkpoint)
@@ -147,7 +125,7 @@ def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> Contac
     record = Path(train_dir) / "fitted.json"
     if not record.is_file():
         raise FileNotFoundError(f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget first")
-    _check_signature(cfg, Path(train_dir), "score the model of")
+    folders.check_signature(cfg, Path(train_dir), "score the model of")
     checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
     return _load_module(cfg, dataset.for_models(), checkpoint).to_contact_model()
 
@@ -170,6 +148,7 @@ def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, 
 def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
+    folders.claim(cfg, output_dir, "train")  # first: a refused run leaves the folder as it was
     pl.seed_everything(cfg.seed, workers=True)
     _configure_torch(cfg)
     splits = ["train", "val"] + (["test"] if cfg.test else [])
@@ -190,6 +169,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
 def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
+    folders.claim(cfg, output_dir, "evaluate")
     _configure_torch(cfg)
     dataset = load_dataset(cfg, [cfg.split])
     logger = tracking.make_logger(cfg, output_dir)
@@ -208,6 +188,7 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
     from contactbench.diagnosis.report import summary_sentence, write_diagnosis
 
+    folders.claim(cfg, Path(output_dir), "diagnose")
     path = Path(cfg.recordings)
     dataset = read_recordings(path, ["train", "val", "test"]).for_models(["train", "val", "test"])
     document, arrays = run_diagnosis(

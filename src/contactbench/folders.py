@@ -1,0 +1,122 @@
+"""A run folder's own record: decide whether a command may use a folder before it writes anything, then record it."""
+from __future__ import annotations
+
+import json
+import re
+import warnings
+from pathlib import Path
+
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
+
+from contactbench import atomic
+from contactbench.errors import ContactbenchError
+
+SIGNATURE = "signature.json"
+
+
+class FolderRefused(ContactbenchError):
+    """A command refused to use a run folder; the folder was left exactly as it was."""
+
+
+def run_signature(cfg: DictConfig) -> dict:
+    """What makes a fitted model what it is; a run folder only resumes or serves a model with the same signature."""
+    return {
+        "model": OmegaConf.to_container(cfg.model, resolve=True),
+        "dataset": str(cfg.dataset.path),
+        "context_frames": int(cfg.context_frames),
+        "seed": int(cfg.seed),
+    }
+
+
+def check_signature(cfg: DictConfig, run_dir: Path, action: str) -> None:
+    recorded = Path(run_dir) / SIGNATURE
+    if recorded.is_file() and _read_signature(recorded) != json.loads(json.dumps(run_signature(cfg))):
+        raise FolderRefused(
+            f"{recorded}: the run there was made with other settings (model, budget, dataset, context_frames or seed) "
+            f"than this command; cannot {action} it. Use another folder (hydra.run.dir=...)"
+            + (" or resume=false to start over" if action == "resume" else "")
+        )
+
+
+def _read_signature(path: Path) -> object:
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise FolderRefused(f"{path}: not valid JSON ({error}); expected the signature contactbench wrote for that run") from None
+
+
+def claim(cfg: DictConfig, output_dir: Path, task: str) -> None:
+    """Refuse (FolderRefused, nothing written) or take the folder: train records its signature, every task its config.
+
+    Hydra's own copy of the config is switched off (conf/hydra/default.yaml: output_subdir: null) because Hydra
+    writes it when the job starts, before any check could refuse; the same files are written here, afterwards.
+    """
+    output_dir = Path(output_dir)
+    if task == "train":
+        if cfg.get("resume", True):
+            check_signature(cfg, output_dir, "resume")
+            check_checkpoint(cfg, output_dir)
+    elif (output_dir / SIGNATURE).is_file():
+        raise FolderRefused(
+            f"{output_dir / SIGNATURE}: this folder holds a train run; {task} would write into it "
+            "(expected a folder of its own: leave hydra.run.dir at its default or name a new folder)"
+        )
+    if task == "train":
+        atomic.write_json(output_dir / SIGNATURE, run_signature(cfg))
+    _write_hydra_record(cfg, output_dir)
+
+
+def check_checkpoint(cfg: DictConfig, output_dir: Path) -> None:
+    """A checkpoint to resume from loads as plain tensors and numbers (never unpickling code), with valid callback states."""
+    if cfg.model.get("kind") != "lightning":
+        return
+    path = Path(output_dir) / "checkpoints" / "last.ckpt"
+    if not path.exists():
+        return
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # torch warns about pickle protocols before refusing; one line is enough
+            checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - whatever the bytes are, the answer is the same refusal
+        raise FolderRefused(
+            f"{path}: not a checkpoint contactbench can resume ({_short(error)}); expected plain tensors and numbers. "
+            "resume=false starts over"
+        ) from None
+    if not isinstance(checkpoint, dict):
+        raise FolderRefused(f"{path}: holds a {type(checkpoint).__name__} (expected a Lightning checkpoint dict)")
+    states = checkpoint.get("callbacks") or {}
+    for node in (cfg.model.get("callbacks") or {}).values():
+        callback = get_class(node._target_)
+        if not hasattr(callback, "check_state"):
+            continue
+        key = callback.__qualname__
+        if key not in states:
+            raise FolderRefused(f"{path}: field 'callbacks.{key}' is missing (expected the state of the {key} callback)")
+        try:
+            callback.check_state(states[key], f"{path}: callbacks.{key}")
+        except ContactbenchError as error:
+            raise FolderRefused(str(error)) from None
+
+
+def _short(error: Exception) -> str:
+    """torch's weights-only refusal is a page of advice; the line that says what was refused is enough here."""
+    text = str(error)
+    match = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\n\n|$)", text, flags=re.S)
+    detail = match.group(1) if match else (text.strip().splitlines() or [""])[0]
+    return f"{type(error).__name__}: {' '.join(detail.split())}"
+
+
+def _write_hydra_record(cfg: DictConfig, output_dir: Path) -> None:
+    """The .hydra/ files Hydra would have written (the report rebuilds models from .hydra/config.yaml)."""
+    if not HydraConfig.initialized():
+        return  # composed in a test or a library call: no Hydra job, nothing of Hydra's to record
+    hydra_cfg = HydraConfig.instance().cfg
+    if hydra_cfg.hydra.output_subdir is not None:
+        return  # Hydra wrote its own copy (a user re-enabled it)
+    record = output_dir / ".hydra"
+    atomic.write_text(record / "config.yaml", OmegaConf.to_yaml(cfg))
+    atomic.write_text(record / "hydra.yaml", OmegaConf.to_yaml(hydra_cfg))
+    atomic.write_text(record / "overrides.yaml", OmegaConf.to_yaml(hydra_cfg.hydra.overrides.task))
