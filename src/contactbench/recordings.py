@@ -8,7 +8,7 @@ import json
 import os
 import zipfile
 from dataclasses import dataclass, field, replace
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Iterable, Mapping
 
 import numpy as np
@@ -20,6 +20,7 @@ from contactbench.meshes import Mesh, MeshError, obj_text, read_obj
 FORMAT = "rigid-contact-recordings"
 VERSION = 1
 QUATERNION_TOLERANCE = 1e-3
+ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a zip's first entry, or an empty zip
 
 
 class RecordingsError(ContactbenchError):
@@ -183,6 +184,13 @@ def _vector(meta: Mapping, key: str, size: int, where: str) -> list[float]:
     return value
 
 
+def _inside_path(value: str, field: str, where: str) -> None:
+    """Paths in meta.json name files inside the dataset folder: never absolute, never up and out with '..'."""
+    path = PurePosixPath(value)
+    if not value or path.is_absolute() or PureWindowsPath(value).is_absolute() or ".." in path.parts or "\\" in value:
+        raise _fail(where, f"field '{field}' is {value!r} (expected a relative path inside the dataset folder, '/'-separated, without '..')")
+
+
 def validate_meta(meta: object, where: str) -> None:
     if not isinstance(meta, dict):
         raise _fail(where, "expected a JSON object")
@@ -212,6 +220,7 @@ def validate_meta(meta: object, where: str) -> None:
             raise _fail(body_where, "expected an object with name, mesh, mass")
         _require(body, "name", str, body_where, "a string")
         _require(body, "mesh", str, body_where, "an OBJ path relative to the dataset folder")
+        _inside_path(body["mesh"], "mesh", body_where)
         mass = _require(body, "mass", (int, float), body_where, "a positive mass in kg")
         if not (np.isfinite(mass) and mass > 0):
             raise _fail(body_where, f"field 'mass' is {mass!r} (expected a positive mass in kg)")
@@ -222,6 +231,8 @@ def validate_meta(meta: object, where: str) -> None:
     splits = _require(meta, "splits", dict, where, "an object mapping split names to .npz files")
     if not splits or not all(isinstance(v, str) for v in splits.values()):
         raise _fail(where, f"field 'splits' is {splits!r} (expected split name -> npz file path)")
+    for name, value in splits.items():
+        _inside_path(value, f"splits.{name}", where)
 
 
 def validate_split(split: Split, n_bodies: int, where: str) -> None:
@@ -273,7 +284,7 @@ def _check_finite(array: np.ndarray, valid: np.ndarray, name: str, where: str) -
 
 
 def _float_array(archive, name: str, where: str) -> np.ndarray:
-    array = archive[name]
+    array = _member(archive, name, where)
     if not np.issubdtype(array.dtype, np.floating):
         raise _fail(where, f"field '{name}' has dtype {array.dtype} (expected float64)")
     return array.astype(np.float64, copy=False)
@@ -300,13 +311,17 @@ def read_split(path: Path, n_bodies: int) -> Split:
     where = str(path)
     if not path.is_file():
         raise RecordingsError(f"{path}: split file missing (named in meta.json 'splits')")
+    with open(path, "rb") as handle:
+        magic = handle.read(4)
+    if magic not in ZIP_MAGIC:  # np.load would call any other bytes "pickled data"
+        raise _fail(where, f"not an .npz archive (starts with {magic!r}; expected a zip archive of .npy arrays)")
     try:
         with np.load(path, allow_pickle=False) as archive:
             if "poses" not in archive.files:
                 raise _fail(where, "field 'poses' is missing (expected float64 [N, T, K, 7])")
             poses = _float_array(archive, "poses", where)
             if "lengths" in archive.files:
-                lengths = archive["lengths"]
+                lengths = _member(archive, "lengths", where)
                 if not np.issubdtype(lengths.dtype, np.integer):
                     raise _fail(where, f"field 'lengths' has dtype {lengths.dtype} (expected int64)")
                 lengths = lengths.astype(np.int64)
@@ -315,16 +330,31 @@ def read_split(path: Path, n_bodies: int) -> Split:
                     poses.shape[0] if poses.ndim else 0, poses.shape[1] if poses.ndim > 1 else 0, dtype=np.int64
                 )
             velocities = _float_array(archive, "velocities", where) if "velocities" in archive.files else None
-            extras = {name: archive[name] for name in archive.files if name not in ("poses", "lengths", "velocities")}
+            extras = {name: _member(archive, name, where) for name in archive.files if name not in ("poses", "lengths", "velocities")}
     except (zipfile.BadZipFile, OSError, EOFError) as error:
         raise _fail(where, f"not a readable .npz archive ({error})") from None
     except ValueError as error:
         if isinstance(error, RecordingsError):
             raise
-        raise _fail(where, f"cannot be read without unpickling ({error}); arrays must be plain numeric") from None
+        raise _fail(where, f"not a readable .npz archive ({error})") from None
     split = Split(poses, lengths, velocities, extras)
     validate_split(split, n_bodies, where)
     return split
+
+
+def _member(archive, name: str, where: str) -> np.ndarray:
+    """One .npy member as a plain numeric array, or a RecordingsError that says what it is instead."""
+    try:
+        array = archive[name]
+    except ValueError as error:
+        if "allow_pickle" in str(error) or "pickled" in str(error):
+            raise _fail(where, f"field '{name}' cannot be read without unpickling (object data); arrays must be plain numeric") from None
+        raise _fail(where, f"field '{name}' is not a readable .npy array ({error})") from None
+    except (zipfile.BadZipFile, OSError, EOFError, KeyError) as error:
+        raise _fail(where, f"field '{name}' is not a readable .npy array ({error})") from None
+    if not isinstance(array, np.ndarray):  # np.load hands back the raw bytes of a member without the .npy header
+        raise _fail(where, f"field '{name}' is not an .npy array (no .npy header; expected a plain numeric array)")
+    return array
 
 
 def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None) -> Recordings:
@@ -335,7 +365,7 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
     for k, body in enumerate(meta["bodies"]):
         if body["mesh"] in meshes:
             continue
-        mesh_path = root / body["mesh"]
+        mesh_path = _inside(root, body["mesh"], f"bodies[{k}].mesh")
         if not mesh_path.is_file():
             raise RecordingsError(f"{mesh_path}: mesh file missing (meta.json bodies[{k}].mesh)")
         try:
@@ -348,8 +378,19 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
         raise RecordingsError(
             f"{root / 'meta.json'}: field 'splits' has no split {unknown[0]!r} (it has {sorted(meta['splits'])})"
         )
-    loaded = {name: read_split(root / meta["splits"][name], len(meta["bodies"])) for name in wanted}
+    loaded = {name: read_split(_inside(root, meta["splits"][name], f"splits.{name}"), len(meta["bodies"])) for name in wanted}
     return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
+
+
+def _inside(root: Path, relative: str, field: str) -> Path:
+    """A meta.json path, refused if a link leads it out of the dataset folder (validate_meta caught '..' already)."""
+    path = root / relative
+    if not path.resolve().is_relative_to(root.resolve()):
+        raise RecordingsError(
+            f"{root / 'meta.json'}: field '{field}' is {relative!r}, which leads to {path.resolve()} "
+            "(expected a file inside the dataset folder, not a link out of it)"
+        )
+    return path
 
 
 # ---------------------------------------------------------------- writing
