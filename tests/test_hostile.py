@@ -1,0 +1,277 @@
+"""Hostile and careless input: crafted checkpoints, other runs' folders, paths and bytes in datasets. One clear error, nothing changed."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import re
+import shutil
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import falling_cubes
+from contactbench.errors import ContactbenchError
+from contactbench.models.sysid.module import NevergradSearch, check_search_state
+from contactbench.recordings import RecordingsError, read_recordings, write_recordings
+from test_pipeline import run_entry_point
+
+SYSID = ["model=sysid", "dataset=contactnets_cube", "budget=smoke"]
+
+
+class _CreatesFile:
+    """A pickle payload: unpickling it creates (truncates) the file at `path`."""
+
+    def __init__(self, path: Path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    """Every file and folder below root, hidden ones included: its bytes' hash (folders: 'dir')."""
+    digest = {}
+    for path in sorted(Path(root).rglob("*")):
+        relative = str(path.relative_to(root))
+        digest[relative] = "dir" if path.is_dir() else hashlib.sha256(path.read_bytes()).hexdigest()
+    return digest
+
+
+def assert_refused(result, *needles: str) -> str:
+    """Exit status 2, exactly one stderr line starting 'error:' that contains every needle, no traceback."""
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr[-3000:]
+    assert "Traceback" not in result.stdout + result.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def finished_sysid_run(tmp_path_factory) -> Path:
+    """A finished train.py run of SysID on budget=smoke, as a user would have it (with .hydra/, train.log, csv/)."""
+    tmp_path = tmp_path_factory.mktemp("finished")
+    run_dir = tmp_path / "run"
+    result = run_entry_point("train.py", [*SYSID, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / "signature.json").is_file()
+    return run_dir
+
+
+def _copy_run(run_dir: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    return copy
+
+
+# ---------------------------------------------------------------- a refused run leaves its folder as it was
+
+
+@pytest.mark.parametrize(
+    "script, overrides, needle",
+    [
+        ("train.py", ["model=hybrid", "dataset=contactnets_cube", "budget=smoke"], "other settings"),
+        ("train.py", ["model=mujoco_default", "dataset=contactnets_cube", "budget=smoke"], "other settings"),
+        ("train.py", [*SYSID, "model.module.position_exponent=1"], "other settings"),
+        ("train.py", [*SYSID, "context_frames=8"], "other settings"),
+        ("evaluate.py", [*SYSID, "split=val"], "holds a train run; evaluate would write into it"),
+        ("generate.py", ["dataset=contactnets_cube"], "holds a train run; generate would write into it"),
+    ],
+)
+def test_a_refused_command_changes_no_byte_of_the_folder(finished_sysid_run, tmp_path, script, overrides, needle):
+    run_dir = _copy_run(finished_sysid_run, tmp_path)
+    before = tree_digest(run_dir)
+    result = run_entry_point(script, [*overrides, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
+    assert_refused(result, str(run_dir / "signature.json"), needle)
+    assert tree_digest(run_dir) == before
+
+
+def test_a_refused_multirun_job_changes_no_byte_of_the_folder(finished_sysid_run, tmp_path):
+    sweep = tmp_path / "sweep"
+    job = sweep / "budget=smoke,dataset=contactnets_cube,model=hybrid"  # this job's folder: another run was copied there
+    shutil.copytree(finished_sysid_run, job)
+    before = tree_digest(job)
+    overrides = ["-m", "model=hybrid", "dataset=contactnets_cube", "budget=smoke", f"hydra.sweep.dir={sweep}"]
+    result = run_entry_point("train.py", overrides, tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]  # a sweep goes on past a skipped job
+    assert "other settings" in result.stderr and "(job skipped)" in result.stderr
+    assert tree_digest(job) == before
+
+
+def test_resuming_a_finished_run_with_the_same_settings_is_accepted(finished_sysid_run, tmp_path):
+    run_dir = _copy_run(finished_sysid_run, tmp_path)
+    result = run_entry_point("train.py", [*SYSID, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads((run_dir / "fitted.json").read_text()) == json.loads((finished_sysid_run / "fitted.json").read_text())
+
+
+# ---------------------------------------------------------------- resuming never executes anything
+
+
+def _craft_checkpoint(run_dir: Path, edit) -> Path:
+    path = run_dir / "checkpoints" / "last.ckpt"
+    checkpoint = torch.load(path, weights_only=True)
+    edit(checkpoint)
+    torch.save(checkpoint, path)
+    return path
+
+
+def test_a_checkpoint_with_pickled_optimiser_bytes_is_refused_and_nothing_runs(finished_sysid_run, tmp_path):
+    run_dir = _copy_run(finished_sysid_run, tmp_path)
+    marker = tmp_path / "payload-ran"
+    payload = pickle.dumps(_CreatesFile(marker))
+    assert not marker.exists()
+
+    def add_optimiser_bytes(checkpoint):  # as an older contactbench stored it, with a payload instead of an optimiser
+        state = checkpoint["callbacks"]["NevergradSearch"]
+        state.update(optimizer=torch.frombuffer(bytearray(payload), dtype=torch.uint8), restart=1, generation=0)
+        state["results"] = state["results"][:1]
+
+    checkpoint = _craft_checkpoint(run_dir, add_optimiser_bytes)
+    before = tree_digest(run_dir)
+    result = run_entry_point("train.py", [*SYSID, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
+    assert_refused(result, str(checkpoint), "callbacks.NevergradSearch", "field 'optimizer'", "unpickling")
+    assert not marker.exists()
+    assert tree_digest(run_dir) == before
+
+
+def test_a_checkpoint_that_is_itself_a_pickle_payload_is_refused_and_nothing_runs(finished_sysid_run, tmp_path):
+    run_dir = _copy_run(finished_sysid_run, tmp_path)
+    marker = tmp_path / "payload-ran"
+    checkpoint = run_dir / "checkpoints" / "last.ckpt"
+    checkpoint.write_bytes(pickle.dumps({"callbacks": _CreatesFile(marker)}, protocol=2))
+    before = tree_digest(run_dir)
+    result = run_entry_point("train.py", [*SYSID, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
+    assert_refused(result, str(checkpoint), "not a checkpoint contactbench can resume", "resume=false")
+    assert not marker.exists()
+    assert tree_digest(run_dir) == before
+
+
+def _valid_state() -> dict:
+    return {
+        "restart": 1, "generation": 2, "evaluations": 24, "unstable": 0,
+        "results": [{"vector": [0.3, 0.2, 2000.0, 60.0], "val_loss": 0.5}],
+        "asked": torch.zeros((8, 4), dtype=torch.float64), "losses": torch.ones(8, dtype=torch.float64),
+    }
+
+
+BAD_STATES = {
+    "pickled optimiser": (lambda s: s.update(optimizer=torch.frombuffer(bytearray(b"\x80\x02cos\nsystem\n"), dtype=torch.uint8)), "'optimizer'"),
+    "unknown field": (lambda s: s.update(extra=1), "field 'extra' is not part of the search state"),
+    "missing field": (lambda s: s.pop("losses"), "field 'losses' is missing"),
+    "negative counter": (lambda s: s.update(generation=-1), "field 'generation' is -1 (expected a non-negative integer)"),
+    "float counter": (lambda s: s.update(restart=1.0), "field 'restart' is 1.0"),
+    "results vs restarts": (lambda s: s.update(restart=3), "field 'results'"),
+    "malformed result": (lambda s: s["results"][0].update(vector="rm -rf"), "field 'results[0]' is malformed"),
+    "asked as bytes": (lambda s: s.update(asked=torch.zeros(8, dtype=torch.uint8)), "field 'asked' is a torch.uint8 tensor"),
+    "losses length": (lambda s: s.update(losses=torch.ones(7, dtype=torch.float64)), "field 'losses'"),
+    "non-finite history": (lambda s: s["asked"].fill_(float("nan")), "field 'asked' holds NaN"),
+    "not a dict": (lambda s: s.clear(), "field 'restart' is missing"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_STATES))
+def test_a_malformed_search_state_is_refused_by_field(case):
+    edit, expected = BAD_STATES[case]
+    state = _valid_state()
+    check_search_state(state, "x")  # the unedited state is valid
+    edit(state)
+    with pytest.raises(ContactbenchError, match=re.escape(expected)):
+        NevergradSearch().load_state_dict(state)
+
+
+def test_load_state_dict_never_unpickles(tmp_path):
+    marker = tmp_path / "payload-ran"
+    state = {**_valid_state(), "optimizer": torch.frombuffer(bytearray(pickle.dumps(_CreatesFile(marker))), dtype=torch.uint8)}
+    with pytest.raises(ContactbenchError, match="unpickling"):
+        NevergradSearch().load_state_dict(state)
+    assert not marker.exists()
+
+
+# ---------------------------------------------------------------- paths and bytes in a dataset
+
+
+def _dataset(tmp_path: Path) -> Path:
+    root = tmp_path / "ds"
+    write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))
+    return root
+
+
+def _edit_meta(root: Path, edit) -> None:
+    meta = json.loads((root / "meta.json").read_text())
+    edit(meta)
+    (root / "meta.json").write_text(json.dumps(meta))
+
+
+ESCAPING_PATHS = {
+    "split up and out": (lambda m: m["splits"].update(train="../../../../etc/passwd"), "field 'splits.train' is '../../../../etc/passwd'"),
+    "split absolute": (lambda m: m["splits"].update(val="/etc/passwd"), "field 'splits.val' is '/etc/passwd'"),
+    "split windows absolute": (lambda m: m["splits"].update(val="C:\\\\Windows\\\\win.ini"), "field 'splits.val'"),
+    "split empty": (lambda m: m["splits"].update(test=""), "field 'splits.test' is ''"),
+    "mesh up and out": (lambda m: m["bodies"][0].update(mesh="meshes/../../cube.obj"), r"bodies\[0\]: field 'mesh' is 'meshes/../../cube.obj'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ESCAPING_PATHS))
+def test_paths_in_meta_json_stay_inside_the_dataset_folder(tmp_path, case):
+    root = _dataset(tmp_path)
+    edit, expected = ESCAPING_PATHS[case]
+    _edit_meta(root, edit)
+    with pytest.raises(RecordingsError, match=expected) as caught:
+        read_recordings(root)
+    message = str(caught.value)
+    assert str(root / "meta.json") in message and "inside the dataset folder" in message and "pickl" not in message
+
+
+def test_a_link_out_of_the_dataset_folder_is_refused(tmp_path):
+    root = _dataset(tmp_path)
+    outside = tmp_path / "elsewhere.npz"
+    shutil.move(root / "train.npz", outside)
+    os.symlink(outside, root / "train.npz")
+    with pytest.raises(RecordingsError, match=r"field 'splits.train' is 'train.npz', which leads to .*elsewhere.npz"):
+        read_recordings(root, ["train"])
+
+
+def test_the_writer_refuses_paths_out_of_the_folder(tmp_path):
+    dataset = falling_cubes()
+    dataset.meta["splits"]["train"] = "../train.npz"
+    with pytest.raises(RecordingsError, match="field 'splits.train'"):
+        write_recordings(tmp_path / "ds", dataset)
+    assert not (tmp_path / "train.npz").exists()
+
+
+def _random_member(path: Path) -> None:
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("poses.npy", np.random.default_rng(0).bytes(300))
+
+
+NOT_NPZ = {
+    "random bytes": (lambda p: p.write_bytes(np.random.default_rng(0).bytes(300)), "not an .npz archive (starts with"),
+    "text": (lambda p: p.write_text("root:x:0:0:root:/root:/bin/bash\n"), "not an .npz archive (starts with b'root'"),
+    "empty file": (lambda p: p.write_bytes(b""), "not an .npz archive"),
+    "zip of random bytes": (_random_member, "field 'poses' is not an .npy array"),
+    "truncated zip": (lambda p: p.write_bytes(p.read_bytes()[:200]), "not a readable .npz archive"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(NOT_NPZ))
+def test_bytes_that_are_not_an_npz_are_not_called_pickled(tmp_path, case):
+    root = _dataset(tmp_path)
+    corrupt, expected = NOT_NPZ[case]
+    corrupt(root / "train.npz")
+    with pytest.raises(RecordingsError, match=re.escape(expected)) as caught:
+        read_recordings(root, ["train"])
+    assert str(root / "train.npz") in str(caught.value) and "pickl" not in str(caught.value)
+
+
+def test_an_escaping_split_path_is_one_clear_error_from_the_command_line(tmp_path):
+    root = _dataset(tmp_path)
+    _edit_meta(root, lambda m: m["splits"].update(test="../../../../etc/passwd"))
+    result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={root}", f"hydra.run.dir={tmp_path / 'eval'}"], tmp_path, timeout=120)
+    assert_refused(result, str(root / "meta.json"), "field 'splits.test'", "inside the dataset folder")
