@@ -75,9 +75,11 @@ def read_obj(path: str | os.PathLike) -> Mesh:
     vertices: list[list[float]] = []
     faces: list[list[int]] = []
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8").splitlines()
     except OSError as error:
         raise MeshError(f"{path}: cannot read mesh ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise MeshError(f"{path}: not a text OBJ file (byte {error.start} is not UTF-8; expected 'v x y z' and 'f i j k' lines)") from None
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
