@@ -5,13 +5,14 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from contactbench import folders, runs
+from contactbench import folders, runs, settings
 from contactbench.cli import guarded
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="generate")
 @guarded
 def main(cfg: DictConfig) -> None:
+    settings.check(cfg)
     folders.claim(cfg, Path(HydraConfig.get().runtime.output_dir), "generate")  # its log folder, not the dataset's
     runs.generate(cfg)
 

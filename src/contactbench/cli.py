@@ -7,8 +7,12 @@ import os
 import sys
 
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
+from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
+from contactbench import settings
 from contactbench.errors import ContactbenchError
 from contactbench.folders import FolderRefused
 
@@ -19,15 +23,39 @@ def _in_multirun() -> bool:
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
+class CheckConfig(Callback):
+    """Refuses an unset mandatory value (recordings=...) before Hydra needs it to name the run folder."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        _exit_if_missing(config)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        _exit_if_missing(config)
+
+
+def _exit_if_missing(config: DictConfig) -> None:
+    missing = settings.missing_keys(config)
+    if missing:
+        print(f"error: {missing[0]} is not set (expected {missing[0]}=... on the command line)", file=sys.stderr)
+        sys.exit(2)
+
+
+def _one_line(error: OmegaConfBaseException) -> str:
+    """OmegaConf's message and the key it was resolving, without its multi-line layout."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    key = next((line for line in lines if line.startswith("full_key:")), "")
+    return f"config: {lines[0] if lines else type(error).__name__}" + (f" ({key})" if key else "")
+
+
 def guarded(main):
     @functools.wraps(main)
     def wrapper(cfg):
         try:
             return main(cfg)
-        except (ContactbenchError, FileNotFoundError) as error:
+        except (ContactbenchError, FileNotFoundError, OmegaConfBaseException) as error:
             if os.environ.get("CONTACTBENCH_TRACEBACK"):
                 raise
-            message = f"error: {error}"
+            message = f"error: {_one_line(error) if isinstance(error, OmegaConfBaseException) else error}"
             if _in_multirun():
                 # One bad job (e.g. the hybrid model on a multi-body variant) must not stop the sweep. A refused
                 # folder is another run's: its log file is not written either.

@@ -3,14 +3,16 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 
+import numpy as np
 import pytorch_lightning as pl
 import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig
 
-from contactbench import atomic, folders, tracking
+from contactbench import atomic, folders, settings, tracking
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
@@ -140,6 +142,15 @@ def _configure_torch(cfg: DictConfig) -> None:
 
 def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, split: str, out_dir: Path, logger) -> dict:
     score = score_model(model, dataset, split, cfg.context_frames, dataset_name=cfg.dataset.name, variant=cfg.dataset.variant)
+    for key, value in score.metrics.summary.items():
+        # A reported metric that is not a number (null in metrics.json) would rank as nothing at all: an error instead.
+        # (Model selection inside training scores with NaN on purpose: there a diverging candidate just loses.)
+        if isinstance(value, (float, np.floating)) and not math.isfinite(float(value)):
+            where = dataset.root / "meta.json" if dataset.root is not None else cfg.dataset.path
+            raise ContactbenchError(
+                f"{where}: {split} metric '{key}' of model {model.name!r} is {float(value)} "
+                "(expected a finite number; check the data's dt and units, or the model's rollout)"
+            )
     document = write_score(score, out_dir)
     tracking.log_scores(logger, score.summary(), split)
     return document
@@ -148,7 +159,8 @@ def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, 
 def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
-    folders.claim(cfg, output_dir, "train")  # first: a refused run leaves the folder as it was
+    settings.check(cfg)
+    folders.claim(cfg, output_dir, "train")  # before anything is written: a refused run leaves the folder as it was
     pl.seed_everything(cfg.seed, workers=True)
     _configure_torch(cfg)
     splits = ["train", "val"] + (["test"] if cfg.test else [])
@@ -169,6 +181,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
 def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
+    settings.check(cfg)
     folders.claim(cfg, output_dir, "evaluate")
     _configure_torch(cfg)
     dataset = load_dataset(cfg, [cfg.split])
@@ -188,6 +201,7 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
     from contactbench.diagnosis.report import summary_sentence, write_diagnosis
 
+    settings.check(cfg)
     folders.claim(cfg, Path(output_dir), "diagnose")
     path = Path(cfg.recordings)
     dataset = read_recordings(path, ["train", "val", "test"]).for_models(["train", "val", "test"])

@@ -1,11 +1,14 @@
 """Toss scene settings (paper Table 2a/2b) and sampling of non-overlapping initial states."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from contactbench import rotations
+from contactbench.errors import ContactbenchError
+from contactbench.generation.solids import SOLID_NAMES
 from contactbench.meshes import Mesh
 
 
@@ -56,10 +59,19 @@ class SceneSpec:
         _set_vectors(self, "position_low", "position_high", "velocity_low", "velocity_high")
         for key in ("faces", "bodies", "spawn_attempts"):
             object.__setattr__(self, key, int(getattr(self, key)))
+        # Physically meaningless values would still simulate (PyBullet takes them) and score: refuse them here.
+        if not (math.isfinite(self.friction) and self.friction >= 0):
+            raise ContactbenchError(f"scene {self.name!r}: friction is {self.friction:g} (expected a friction coefficient >= 0)")
+        if not (0 <= self.restitution <= 1):
+            raise ContactbenchError(f"scene {self.name!r}: restitution is {self.restitution:g} (expected a coefficient from 0 to 1)")
+        if not (math.isfinite(self.center_bias_speed) and self.center_bias_speed >= 0):
+            raise ContactbenchError(f"scene {self.name!r}: center_bias_speed is {self.center_bias_speed:g} (expected a speed >= 0 in m/s)")
+        if self.faces not in SOLID_NAMES:
+            raise ContactbenchError(f"scene {self.name!r}: faces is {self.faces} (expected one of {sorted(SOLID_NAMES)})")
         if self.bodies < 1:
-            raise ValueError(f"scene {self.name!r}: bodies must be at least 1, got {self.bodies}")
+            raise ContactbenchError(f"scene {self.name!r}: bodies is {self.bodies} (expected at least 1)")
         if self.spawn_attempts < 1:
-            raise ValueError(f"scene {self.name!r}: spawn_attempts must be at least 1, got {self.spawn_attempts}")
+            raise ContactbenchError(f"scene {self.name!r}: spawn_attempts is {self.spawn_attempts} (expected at least 1)")
         if np.any(np.greater(self.position_low, self.position_high)) or np.any(np.greater(self.velocity_low, self.velocity_high)):
             raise ValueError(f"scene {self.name!r}: a lower bound of the initial-state box exceeds its upper bound")
 

@@ -56,6 +56,9 @@ class SysIDModule(pl.LightningModule):
         substeps: int = 1,
     ):
         super().__init__()
+        for name, value in (("evaluations", evaluations), ("restarts", restarts), ("num_workers", num_workers)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
         self.save_hyperparameters(ignore=["dataset"])
         self.automatic_optimization = False
         self.dataset = dataset

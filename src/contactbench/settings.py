@@ -1,0 +1,94 @@
+"""Checks of a composed config before a command does anything: an impossible setting is one clear error, not a run."""
+from __future__ import annotations
+
+import logging
+import math
+
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from contactbench.config import CONFIG_DIR
+from contactbench.errors import ContactbenchError
+
+log = logging.getLogger(__name__)
+
+# Budget counts that must be positive integers, and those that may also be null (meaning "all").
+# Only these keys are checked: a budget key added later is not refused for being unknown here.
+COUNTS = {
+    "sysid": ("evaluations", "restarts", "num_workers"),
+    "gnn": ("max_steps", "val_check_interval"),
+    "hybrid": ("max_epochs",),
+    "diagnose": ("segment_frames", "fit_trajectories", "val_trajectories", "base_evaluations", "batch", "lsq_iterations", "front_runners", "max_effects", "bootstrap"),
+}
+COUNTS_OR_ALL = {"sysid": ("batch_trajectories", "val_trajectories"), "gnn": ("val_rollouts",)}
+RATES = {"gnn": ("lr",)}
+
+
+def check(cfg: DictConfig) -> None:
+    """Refuse unset mandatory values, non-positive budgets and physically impossible scenes (ContactbenchError)."""
+    missing = missing_keys(cfg)
+    if missing:
+        raise ContactbenchError(f"{missing[0]} is not set (expected {missing[0]}=... on the command line)")
+    budget = cfg.get("budget")
+    if budget is not None:
+        _check_budget(budget)
+    dataset = cfg.get("dataset")
+    if dataset is not None and dataset.get("scene") is not None:
+        _check_scene(cfg)
+
+
+def missing_keys(config: DictConfig) -> list[str]:
+    """Keys left at '???' outside Hydra's own node, found without resolving (resolving would fail on them)."""
+    tree = OmegaConf.to_container(config, resolve=False, throw_on_missing=False)
+    tree.pop("hydra", None)
+    return _missing(tree, "")
+
+
+def _missing(tree, prefix: str) -> list[str]:
+    if isinstance(tree, dict):
+        return [key for name, value in tree.items() for key in _missing(value, f"{prefix}{name}.")]
+    if isinstance(tree, list):
+        return [key for k, value in enumerate(tree) for key in _missing(value, f"{prefix}{k}.")]
+    return [prefix[:-1]] if tree == "???" else []
+
+
+def _check_budget(budget: DictConfig) -> None:
+    for group, keys in COUNTS.items():
+        for key in keys:
+            _count(budget, group, key, allow_all=False)
+    for group, keys in COUNTS_OR_ALL.items():
+        for key in keys:
+            _count(budget, group, key, allow_all=True)
+    for group, keys in RATES.items():
+        for key in keys:
+            value = OmegaConf.select(budget, f"{group}.{key}", default=None)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0)):
+                raise ContactbenchError(f"budget.{group}.{key} is {value!r} (expected a positive number)")
+
+
+def _count(budget: DictConfig, group: str, key: str, allow_all: bool) -> None:
+    node = budget.get(group)
+    if node is None or key not in node:
+        return
+    value = node[key]
+    if value is None and allow_all:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        expected = "a positive integer" + (" or null (all)" if allow_all else "")
+        raise ContactbenchError(f"budget.{group}.{key} is {value!r} (expected {expected})")
+
+
+def _check_scene(cfg: DictConfig) -> None:
+    """Build the scene spec (its own checks say what is physical) and say when a variant is not one of Table 1's."""
+    try:
+        instantiate(cfg.dataset.scene)
+    except InstantiationException as error:
+        # instantiate wraps what the target raised; the spec's own message is the one for the user.
+        if isinstance(error.__cause__, ContactbenchError):
+            raise error.__cause__ from None
+        raise
+    variant = str(cfg.dataset.variant)
+    value = variant.split("=", 1)[1] if "=" in variant else variant
+    if not (CONFIG_DIR / "variant" / f"{cfg.dataset.name}_{value}.yaml").is_file():
+        log.warning("%s %s is a custom variant, not one of the paper's Table 1 variants (conf/variant/)", cfg.dataset.name, variant)
