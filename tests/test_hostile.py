@@ -15,10 +15,11 @@ import pytest
 import torch
 
 from conftest import falling_cubes
+from contactbench import runs, settings
 from contactbench.errors import ContactbenchError
 from contactbench.models.sysid.module import NevergradSearch, check_search_state
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
-from test_pipeline import run_entry_point
+from test_pipeline import compose_config, run_entry_point
 
 SYSID = ["model=sysid", "dataset=contactnets_cube", "budget=smoke"]
 
@@ -197,9 +198,9 @@ def test_load_state_dict_never_unpickles(tmp_path):
 # ---------------------------------------------------------------- paths and bytes in a dataset
 
 
-def _dataset(tmp_path: Path) -> Path:
+def _dataset(tmp_path: Path, n_frames: int = 6) -> Path:
     root = tmp_path / "ds"
-    write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))
+    write_recordings(root, falling_cubes(n_trajectories=2, n_frames=n_frames))
     return root
 
 
@@ -275,3 +276,74 @@ def test_an_escaping_split_path_is_one_clear_error_from_the_command_line(tmp_pat
     _edit_meta(root, lambda m: m["splits"].update(test="../../../../etc/passwd"))
     result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={root}", f"hydra.run.dir={tmp_path / 'eval'}"], tmp_path, timeout=120)
     assert_refused(result, str(root / "meta.json"), "field 'splits.test'", "inside the dataset folder")
+
+
+# ---------------------------------------------------------------- impossible settings, non-finite results, binary meshes
+
+
+BAD_SETTINGS = {
+    "negative sysid evaluations": (["model=sysid", "budget.sysid.evaluations=-16"], "budget.sysid.evaluations is -16 (expected a positive integer)"),
+    "negative gnn steps": (["budget.gnn.max_steps=-1"], "budget.gnn.max_steps is -1 (expected a positive integer)"),
+    "zero batch": (["budget.sysid.batch_trajectories=0"], "budget.sysid.batch_trajectories is 0 (expected a positive integer or null (all))"),
+    "fractional restarts": (["budget.sysid.restarts=1.5"], "budget.sysid.restarts is 1.5"),
+    "negative learning rate": (["budget.gnn.lr=-0.001"], "budget.gnn.lr is -0.001 (expected a positive number)"),
+    "negative friction": (["friction=-1"], "scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)"),
+    "restitution above one": (["dataset=bouncycubes", "restitution=1.5"], "scene 'bouncycubes': restitution is 1.5 (expected a coefficient from 0 to 1)"),
+    "unknown solid": (["dataset=polyhedra", "faces=7"], "scene 'polyhedra': faces is 7 (expected one of"),
+    "recordings unset": (["dataset=recordings"], "recordings is not set (expected recordings=... on the command line)"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SETTINGS))
+def test_impossible_settings_are_refused_before_anything_runs(tmp_path, case):
+    overrides, expected = BAD_SETTINGS[case]
+    cfg = compose_config("train", overrides, tmp_path)
+    with pytest.raises(ContactbenchError, match=re.escape(expected)):
+        runs.train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
+
+
+def test_a_custom_variant_says_it_is_one(tmp_path, caplog):
+    settings.check(compose_config("train", ["friction=7"], tmp_path))
+    assert "friction=7 is a custom variant, not one of the paper's Table 1 variants" in caplog.text
+    caplog.clear()
+    settings.check(compose_config("train", ["friction=0.75"], tmp_path))
+    assert "custom variant" not in caplog.text
+
+
+def test_a_direct_sysid_override_is_checked_by_the_module(small_recordings):
+    from contactbench.models.sysid.module import SysIDModule
+
+    with pytest.raises(ContactbenchError, match=re.escape("model.module.evaluations is -16 (expected a positive integer)")):
+        SysIDModule(small_recordings, 6, evaluations=-16, restarts=1, num_workers=4, batch_trajectories=None, val_trajectories=None)
+
+
+@pytest.mark.parametrize(
+    "script, overrides, expected",
+    [
+        ("diagnose.py", [], "error: recordings is not set (expected recordings=... on the command line)"),
+        ("evaluate.py", ["dataset=recordings"], "error: recordings is not set (expected recordings=... on the command line)"),
+        ("train.py", ["model=sysid", "budget.sysid.evaluations=-16"], "error: budget.sysid.evaluations is -16 (expected a positive integer)"),
+        ("generate.py", ["friction=-1"], "error: scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)"),
+    ],
+)
+def test_impossible_settings_are_one_line_from_the_command_line(tmp_path, script, overrides, expected):
+    result = run_entry_point(script, overrides, tmp_path, timeout=120)
+    assert assert_refused(result) == expected
+    assert not (tmp_path / "data").exists()
+
+
+def test_a_non_finite_metric_is_an_error_not_null(tmp_path):
+    root = _dataset(tmp_path, n_frames=12)
+    _edit_meta(root, lambda m: m.update(dt=1e300))  # valid by the format (a positive number), absurd in practice
+    cfg = compose_config("evaluate", ["dataset=recordings", f"recordings={root}", "model=mujoco_default"], tmp_path)
+    with pytest.raises(ContactbenchError, match=r"meta.json: test metric '\w+' of model 'mujoco_default' is nan \(expected a finite number"):
+        runs.evaluate(cfg, tmp_path / "eval")
+    assert not (tmp_path / "eval" / "metrics.json").exists()
+
+
+def test_a_binary_mesh_file_is_one_clear_error(tmp_path):
+    root = _dataset(tmp_path)
+    (root / "meshes" / "cube.obj").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(RecordingsError, match=r"cube.obj: not a text OBJ file \(byte 128 is not UTF-8.*\(meta.json bodies\[0\].mesh\)"):
+        read_recordings(root, ["train"])
