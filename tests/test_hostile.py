@@ -2,11 +2,15 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import pickle
 import re
 import shutil
+import struct
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
@@ -347,3 +351,123 @@ def test_a_binary_mesh_file_is_one_clear_error(tmp_path):
     (root / "meshes" / "cube.obj").write_bytes(bytes(range(256)) * 4)
     with pytest.raises(RecordingsError, match=r"cube.obj: not a text OBJ file \(byte 128 is not UTF-8.*\(meta.json bodies\[0\].mesh\)"):
         read_recordings(root, ["train"])
+
+
+# ---------------------------------------------------------------- bounded memory: sizes checked before allocating
+
+
+_PEAK_PROBE = r"""
+import json, resource, sys
+from contactbench.recordings import RecordingsError, read_recordings
+
+def status(field):  # this process's own figures; ru_maxrss would include the parent's size at fork
+    for line in open("/proc/self/status"):
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+
+# A regression must fail fast (MemoryError below), not take the machine's memory: 1 GiB of address space beyond now.
+limit = status("VmSize") + (1 << 30)
+resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+before = status("VmHWM")
+try:
+    read_recordings(sys.argv[1], ["train"])
+    outcome = "read"
+except RecordingsError as error:
+    outcome = "error: " + str(error)
+after = status("VmHWM")
+print(json.dumps({"outcome": outcome, "peak_mb": after / 2**20, "extra_mb": (after - before) / 2**20}))
+"""
+
+
+def read_in_subprocess(root: Path, timeout: float = 60) -> dict:
+    """read_recordings(root, ['train']) in a fresh interpreter: its outcome and peak memory (MB, all and added)."""
+    result = subprocess.run([sys.executable, "-c", _PEAK_PROBE, str(root)], capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def _npy_header(shape: tuple, dtype="<f8") -> bytes:
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, {"descr": dtype, "fortran_order": False, "shape": shape})
+    return buffer.getvalue()
+
+
+def _deflate_bomb(path: Path, gigabytes: float = 2.0) -> None:
+    """poses.npy of zeros, header and data agreeing, deflated: ~2 MB on disk that would inflate to ~2 GB."""
+    n = int(gigabytes * 2**30) // (100 * 2 * 7 * 8)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=9) as archive:
+        with archive.open("poses.npy", "w", force_zip64=True) as member:
+            member.write(_npy_header((n, 100, 2, 7)))
+            zeros = bytes(1 << 24)
+            left = n * 100 * 2 * 7 * 8
+            while left:
+                member.write(zeros[: min(left, len(zeros))])
+                left -= min(left, len(zeros))
+
+
+def _huge_header(path: Path) -> None:
+    """A stored poses.npy whose header claims 10^12 trajectories, followed by a few bytes."""
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("poses.npy", _npy_header((10**12, 6, 2, 7)) + bytes(64))
+
+
+def _lying_directory(path: Path) -> None:
+    """A valid npz whose zip directory then claims a stored poses.npy of 2 GB (header patched to agree)."""
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("poses.npy", _npy_header((2**31 // 112, 1, 2, 7)) + bytes(64))
+    data = bytearray(path.read_bytes())
+    directory = data.index(b"PK\x01\x02")
+    data[directory + 20 : directory + 28] = struct.pack("<II", 2**31, 2**31)  # compressed and uncompressed sizes
+    path.write_bytes(bytes(data))
+
+
+HUGE = {
+    "deflate bomb": (_deflate_bomb, "field 'poses' inflates from"),
+    "header claims 10^12 trajectories": (_huge_header, "field 'poses': its .npy header declares shape (1000000000000, 6, 2, 7)"),
+    "zip directory claims 2 GB": (_lying_directory, "field 'poses': its zip entry claims 2147483648 compressed bytes, more than the file's"),
+}
+PEAK_EXTRA_MB = 64  # what reading a refused split may add to the interpreter's own memory
+
+
+@pytest.mark.parametrize("case", sorted(HUGE))
+def test_a_split_claiming_huge_arrays_is_refused_before_allocating(tmp_path, case, record_property):
+    root = _dataset(tmp_path)
+    build, expected = HUGE[case]
+    build(root / "train.npz")
+    assert (root / "train.npz").stat().st_size < 4 * 2**20
+    probe = read_in_subprocess(root)
+    record_property("peak_rss_mb", round(probe["peak_mb"], 1))
+    assert probe["outcome"].startswith(f"error: {root / 'train.npz'}: ") and expected in probe["outcome"], probe["outcome"]
+    assert "\n" not in probe["outcome"]
+    assert probe["extra_mb"] < PEAK_EXTRA_MB, probe
+
+
+def test_a_valid_split_still_reads_under_the_probe(tmp_path):
+    probe = read_in_subprocess(_dataset(tmp_path))
+    assert probe["outcome"] == "read", probe
+
+
+MEMBER_LIES = {
+    "data shorter than the header says": (lambda a: a.update(poses=_npy_header((2, 6, 2, 7)) + bytes(8)), "field 'poses': its .npy header declares shape (2, 6, 2, 7)"),
+    "data longer than the header says": (lambda a: a.update(poses=_npy_header((1, 6, 1, 7)) + bytes(8 * 2 * 6 * 7)), "field 'poses': its .npy header declares shape (1, 6, 1, 7)"),
+    "negative shape": (lambda a: a.update(poses=_npy_header((-2, -6, 1, 7)) + bytes(8 * 84)), "expected non-negative sizes"),
+    "structured dtype": (lambda a: a.update(poses=_npy_header((2,), [('a', '<f8')]) + bytes(16)), "field 'poses' has dtype"),
+    "string dtype": (lambda a: a.update(lengths=_npy_header((2,), "<U4") + bytes(32)), "field 'lengths' has dtype <U4 (expected a plain numeric array)"),
+    "header too long": (lambda a: a.update(poses=b"\x93NUMPY\x01\x00" + struct.pack("<H", 60000) + b" " * 60000), "field 'poses' is not a readable .npy array"),
+    "unknown npy version": (lambda a: a.update(poses=b"\x93NUMPY\x09\x00" + bytes(100)), "unsupported .npy format version (9, 0)"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MEMBER_LIES))
+def test_an_npy_header_that_disagrees_with_its_member_is_refused(tmp_path, case):
+    root = _dataset(tmp_path)
+    edit, expected = MEMBER_LIES[case]
+    with zipfile.ZipFile(root / "train.npz") as archive:
+        members = {name[:-4]: archive.read(name) for name in archive.namelist()}
+    edit(members)
+    with zipfile.ZipFile(root / "train.npz", "w") as archive:
+        for name, payload in members.items():
+            archive.writestr(f"{name}.npy", payload)
+    with pytest.raises(RecordingsError, match=re.escape(expected)) as caught:
+        read_recordings(root, ["train"])
+    assert str(caught.value).startswith(f"{root / 'train.npz'}: ") and "\n" not in str(caught.value)
