@@ -11,6 +11,7 @@ import shutil
 import struct
 import subprocess
 import sys
+import time
 import zipfile
 from pathlib import Path
 
@@ -471,3 +472,82 @@ def test_an_npy_header_that_disagrees_with_its_member_is_refused(tmp_path, case)
     with pytest.raises(RecordingsError, match=re.escape(expected)) as caught:
         read_recordings(root, ["train"])
     assert str(caught.value).startswith(f"{root / 'train.npz'}: ") and "\n" not in str(caught.value)
+
+
+# ---------------------------------------------------------------- leftovers of a killed write, too-short trajectories
+
+
+def test_stale_staging_folders_are_removed_at_the_next_write_and_only_those(tmp_path):
+    from contactbench import atomic
+
+    root = _dataset(tmp_path)
+    host = atomic._owner().rsplit("-", 1)[0]
+    dead = subprocess.Popen(["true"])  # a process that is gone: its pid names a dead writer
+    dead.wait()
+    alive = subprocess.Popen(["sleep", "60"])
+    try:
+        names = {
+            "dead writer": f".ds.{host}-{dead.pid}.abcd1234.tmp",
+            "live writer": f".ds.{host}-{alive.pid}.abcd1234.tmp",
+            "other host, recent": f".ds.elsewhere-{dead.pid}.abcd1234.tmp",
+            "old naming, recent": ".ds.k3j9x_2a.tmp",
+            "old naming, a day old": ".ds.q8w7e6r5.tmp",
+            "another dataset's": f".other.{host}-{dead.pid}.abcd1234.tmp",
+            "not our pattern": ".ds.notes.tmp",
+        }
+        for name in names.values():
+            (tmp_path / name / "meshes").mkdir(parents=True)
+            (tmp_path / name / "train.npz").write_bytes(b"half written")
+        day_old = time.time() - atomic.STALE_AFTER_S - 60
+        for path in [tmp_path / names["old naming, a day old"], *(tmp_path / names["old naming, a day old"]).rglob("*")]:
+            os.utime(path, (day_old, day_old))
+        write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))
+        left = {label for label, name in names.items() if (tmp_path / name).exists()}
+        assert left == {"live writer", "other host, recent", "old naming, recent", "another dataset's", "not our pattern"}
+        assert read_recordings(root).splits["train"].n_trajectories == 2
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".ds.") and p.name not in names.values()]
+    finally:
+        alive.kill()
+        alive.wait()
+
+
+def test_a_generation_killed_during_its_final_write_is_cleaned_by_the_next(tmp_path):
+    """A real kill: the writer is SIGKILLed while its staging folder exists; the next write of that dataset removes it."""
+    script = (
+        "import os, signal, sys\n"
+        "sys.path.insert(0, sys.argv[2])\n"
+        "from conftest import falling_cubes\n"
+        "from contactbench import atomic, recordings\n"
+        "real = atomic.write_json\n"
+        "def killed(path, obj):\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+        "atomic.write_json = killed  # meta.json is the last file of the final write\n"
+        "recordings.write_recordings(sys.argv[1], falling_cubes())\n"
+    )
+    root = tmp_path / "friction=0.5"
+    result = subprocess.run([sys.executable, "-c", script, str(root), str(Path(__file__).parent)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == -9, result.stderr[-2000:]
+    leftovers = [p for p in tmp_path.iterdir() if p.name.startswith(".friction=0.5.") and p.name.endswith(".tmp")]
+    assert len(leftovers) == 1 and not root.exists()
+    write_recordings(root, falling_cubes())
+    assert not leftovers[0].exists() and sorted(p.name for p in tmp_path.iterdir()) == ["friction=0.5"]
+
+
+def test_too_short_trajectories_name_the_file_and_write_nothing(tmp_path):
+    root = tmp_path / "ds"
+    write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))  # 6 frames: all context, nothing to predict
+    run_dir = tmp_path / "run"
+    cfg = compose_config("train", ["model=mujoco_default", "dataset=recordings", f"recordings={root}"], tmp_path)
+    with pytest.raises(RecordingsError, match=re.escape(f"{root / 'train.npz'}: field 'lengths': trajectory 0 has 6 frames (2 of 2 have fewer than 7; expected at least 7: context_frames=6")):
+        runs.train(cfg, run_dir)
+    assert not run_dir.exists()
+
+
+def test_too_short_trajectories_are_one_line_from_the_command_line(tmp_path):
+    root = tmp_path / "ds"
+    write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))
+    run_dir = tmp_path / "eval"
+    run_dir.mkdir()
+    result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={root}", "model=mujoco_default", f"hydra.run.dir={run_dir}"], tmp_path, timeout=120)
+    assert_refused(result, str(root / "test.npz"), "field 'lengths'", "expected at least 7")
+    assert tree_digest(run_dir) == {}

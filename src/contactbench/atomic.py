@@ -3,14 +3,20 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
+import re
 import shutil
+import socket
 import tempfile
+import time
 import zipfile
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 # Fixed zip timestamps: np.savez stamps the wall clock, which would make equal data differ byte-wise.
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -69,9 +75,65 @@ def replace_directory(staging: Path, target: Path) -> None:
         os.replace(staging, target)
 
 
+def _owner() -> str:
+    """Who stages a folder: host and process, so a later writer can tell a dead writer's leftovers from a live one's."""
+    host = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
+    return f"{host}-{os.getpid()}"
+
+
 def staging_directory(target: str | os.PathLike) -> Path:
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.{_owner()}.", suffix=".tmp", dir=target.parent))
     staging.chmod(0o755)
     return staging
+
+
+STALE_AFTER_S = 24 * 3600  # a staging folder untouched this long is a leftover, whoever made it
+
+
+def remove_stale_staging(target: str | os.PathLike) -> list[Path]:
+    """Remove staging folders of `target` that a killed writer left (`.<name>.<host>-<pid>.<random>.tmp`).
+
+    Only folders of exactly this pattern, next to `target`: stale when their process is gone (same host), or when
+    nothing in them changed for STALE_AFTER_S (another host, or the older `.<name>.<random>.tmp` naming).
+    """
+    target = Path(target)
+    if not target.parent.is_dir():
+        return []
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.(?:(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.)?[A-Za-z0-9_]{{8}}\.tmp")
+    host = _owner().rsplit("-", 1)[0]
+    removed = []
+    for path in target.parent.iterdir():
+        match = pattern.fullmatch(path.name)
+        if not match or path.is_symlink() or not path.is_dir():
+            continue
+        if match["pid"] and match["host"] == host and int(match["pid"]) != os.getpid():
+            stale = not _alive(int(match["pid"]))
+        else:
+            stale = time.time() - _newest_change(path) > STALE_AFTER_S
+        if stale:
+            shutil.rmtree(path, ignore_errors=True)
+            log.info("removed %s, a staging folder left by an interrupted write", path)
+            removed.append(path)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def _newest_change(path: Path) -> float:
+    newest = path.lstat().st_mtime
+    for child in path.rglob("*"):
+        try:
+            newest = max(newest, child.lstat().st_mtime)
+        except OSError:
+            pass
+    return newest

@@ -49,11 +49,13 @@ def _read_signature(path: Path) -> object:
 
 
 def claim(cfg: DictConfig, output_dir: Path, task: str) -> None:
-    """Refuse (FolderRefused, nothing written) or take the folder: train records its signature, every task its config.
+    """Refuse (FolderRefused, nothing written) or take the folder: `check` then `record`."""
+    check(cfg, output_dir, task)
+    record(cfg, output_dir, task)
 
-    Hydra's own copy of the config is switched off (conf/hydra/default.yaml: output_subdir: null) because Hydra
-    writes it when the job starts, before any check could refuse; the same files are written here, afterwards.
-    """
+
+def check(cfg: DictConfig, output_dir: Path, task: str) -> None:
+    """Refuse (FolderRefused) a folder this command may not use; writes nothing."""
     output_dir = Path(output_dir)
     if task == "train":
         if cfg.get("resume", True):
@@ -64,6 +66,15 @@ def claim(cfg: DictConfig, output_dir: Path, task: str) -> None:
             f"{output_dir / SIGNATURE}: this folder holds a train run; {task} would write into it "
             "(expected a folder of its own: leave hydra.run.dir at its default or name a new folder)"
         )
+
+
+def record(cfg: DictConfig, output_dir: Path, task: str) -> None:
+    """Take a checked folder: train records its signature, every task its config.
+
+    Hydra's own copy of the config is switched off (conf/hydra/default.yaml: output_subdir: null) because Hydra
+    writes it when the job starts, before any check could refuse; the same files are written here, afterwards.
+    """
+    output_dir = Path(output_dir)
     if task == "train":
         atomic.write_json(output_dir / SIGNATURE, run_signature(cfg))
     _write_hydra_record(cfg, output_dir)

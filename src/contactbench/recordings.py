@@ -465,6 +465,18 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
     return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
 
 
+def require_frames(recordings: Recordings, minimum: int, reason: str) -> None:
+    """Every loaded trajectory has at least `minimum` frames, or one RecordingsError naming the split file."""
+    for name, split in recordings.splits.items():
+        short = np.flatnonzero(split.lengths < minimum)
+        if len(short):
+            where = recordings.root / recordings.meta["splits"][name] if recordings.root is not None else f"{recordings.name} split {name!r}"
+            raise RecordingsError(
+                f"{where}: field 'lengths': trajectory {short[0]} has {split.lengths[short[0]]} frames "
+                f"({len(short)} of {split.n_trajectories} have fewer than {minimum}; expected at least {minimum}: {reason})"
+            )
+
+
 def _inside(root: Path, relative: str, field: str) -> Path:
     """A meta.json path, refused if a link leads it out of the dataset folder (validate_meta caught '..' already)."""
     path = root / relative
@@ -493,6 +505,7 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
         if name not in meta["splits"]:
             raise RecordingsError(f"{root / 'meta.json'} (being written): split {name!r} not listed in 'splits'")
         validate_split(split, len(meta["bodies"]), f"{root / meta['splits'][name]} (being written)")
+    atomic.remove_stale_staging(root)  # left by a writer killed during its final write
     staging = atomic.staging_directory(root)
     try:
         for mesh_path, mesh in recordings.meshes.items():

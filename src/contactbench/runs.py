@@ -16,7 +16,7 @@ from contactbench import atomic, folders, settings, tracking
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
-from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings
+from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings, require_frames
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,10 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
     if not (path / "meta.json").exists() and cfg.dataset.scene is not None:
         log.info("%s not found: generating it", path)
         generate(cfg)
-    return read_recordings(path, splits)
+    dataset = read_recordings(path, splits)
+    context_frames = int(cfg.context_frames)
+    require_frames(dataset, context_frames + 1, f"context_frames={context_frames} frames are given to the models, which predict the rest")
+    return dataset
 
 
 # ---------------------------------------------------------------- models
@@ -98,7 +101,7 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     last = checkpoint_dir / "last.ckpt"
     resume_from = str(last) if cfg.resume and last.exists() else None
     if resume_from:
-        log.info("resuming from %s", resume_from)  # folders.claim has checked its signature and contents
+        log.info("resuming from %s", resume_from)  # folders.check has checked its signature and contents
     trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     checkpoint = Path(best_path).name if best_path else "last.ckpt"
@@ -160,11 +163,12 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
     settings.check(cfg)
-    folders.claim(cfg, output_dir, "train")  # before anything is written: a refused run leaves the folder as it was
+    folders.check(cfg, output_dir, "train")  # before anything is written: a refused run leaves the folder as it was
     pl.seed_everything(cfg.seed, workers=True)
     _configure_torch(cfg)
     splits = ["train", "val"] + (["test"] if cfg.test else [])
     dataset = load_dataset(cfg, splits)
+    folders.record(cfg, output_dir, "train")  # the dataset is readable and long enough: the run starts here
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
@@ -182,9 +186,10 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
     settings.check(cfg)
-    folders.claim(cfg, output_dir, "evaluate")
+    folders.check(cfg, output_dir, "evaluate")
     _configure_torch(cfg)
     dataset = load_dataset(cfg, [cfg.split])
+    folders.record(cfg, output_dir, "evaluate")
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
@@ -202,9 +207,12 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     from contactbench.diagnosis.report import summary_sentence, write_diagnosis
 
     settings.check(cfg)
-    folders.claim(cfg, Path(output_dir), "diagnose")
+    folders.check(cfg, Path(output_dir), "diagnose")
     path = Path(cfg.recordings)
-    dataset = read_recordings(path, ["train", "val", "test"]).for_models(["train", "val", "test"])
+    dataset = read_recordings(path, ["train", "val", "test"])
+    require_frames(dataset, int(cfg.context_frames) + 1, f"context_frames={int(cfg.context_frames)} frames are given to the models, which predict the rest")
+    dataset = dataset.for_models(["train", "val", "test"])
+    folders.record(cfg, Path(output_dir), "diagnose")
     document, arrays = run_diagnosis(
         dataset, Budget(**cfg.budget.diagnose), Decision(margin=float(cfg.margin)), seed=int(cfg.seed), context_frames=int(cfg.context_frames)
     )
