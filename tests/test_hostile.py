@@ -551,3 +551,43 @@ def test_too_short_trajectories_are_one_line_from_the_command_line(tmp_path):
     result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={root}", "model=mujoco_default", f"hydra.run.dir={run_dir}"], tmp_path, timeout=120)
     assert_refused(result, str(root / "test.npz"), "field 'lengths'", "expected at least 7")
     assert tree_digest(run_dir) == {}
+
+
+# ---------------------------------------------------------------- misspelled new keys, the README's quoting rule
+
+
+@pytest.mark.parametrize("task", ["train", "evaluate", "generate", "diagnose"])
+def test_a_misspelled_new_top_level_key_is_refused(tmp_path, task):
+    overrides = ["+contxt_frames=3"] + (["recordings=x"] if task == "diagnose" else [])
+    cfg = compose_config(task, overrides, tmp_path)
+    message = settings.unknown_addition(cfg, overrides)
+    assert message is not None and message.startswith(f"+contxt_frames=... adds a setting {task} does not read (")
+    if task != "generate":
+        assert "did you mean context_frames=...?" in message
+
+
+def test_known_additions_and_other_overrides_are_accepted(tmp_path):
+    overrides = ["+effects=[floor_tilt]", "+effect_strength=2", "friction=0.25", "++seed=3"]
+    assert settings.unknown_addition(compose_config("generate", overrides, tmp_path), overrides) is None
+    overrides = ["+overwrite=true", "model=sysid", "+model.module.extra=1"]  # nested keys: not top-level, left alone
+    assert settings.unknown_addition(compose_config("train", overrides[:2], tmp_path), overrides) is None
+
+
+def test_a_misspelled_new_key_is_one_line_from_the_command_line_and_writes_nothing(tmp_path):
+    run_dir = tmp_path / "run"
+    result = run_entry_point("train.py", ["+contxt_frames=3", f"hydra.run.dir={run_dir}"], tmp_path, timeout=120)
+    assert_refused(result, "+contxt_frames=... adds a setting train does not read (did you mean context_frames=...?")
+    assert not run_dir.exists() and not (tmp_path / "outputs").exists()
+
+
+def test_the_readme_diagnose_example_with_commas_parses():
+    import shlex
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    lines = [line for line in readme.splitlines() if line.startswith("python diagnose.py") and "," in line]
+    assert lines, "the README's diagnose example with a comma in the path"
+    for line in lines:
+        arguments = shlex.split(line.split("  #")[0])[2:]  # what the shell hands to diagnose.py
+        cfg = compose_config("diagnose", arguments, Path("/tmp"))
+        assert cfg.recordings == "data/frictioncubes/friction=0.5,effects=floor_tilt,strength=2"
+    assert compose_config("diagnose", ["recordings='my data/a,b=1 \\'c\\''"], Path("/tmp")).recordings == "my data/a,b=1 'c'"

@@ -24,19 +24,23 @@ def _in_multirun() -> bool:
 
 
 class CheckConfig(Callback):
-    """Refuses an unset mandatory value (recordings=...) before Hydra needs it to name the run folder."""
+    """Refuses an unset mandatory value (recordings=...) or an unknown +key before Hydra names the run folder."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
-        _exit_if_missing(config)
+        _exit_if_refused(config)
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        _exit_if_missing(config)
+        _exit_if_refused(config)
 
 
-def _exit_if_missing(config: DictConfig) -> None:
+def _exit_if_refused(config: DictConfig) -> None:
     missing = settings.missing_keys(config)
     if missing:
         print(f"error: {missing[0]} is not set (expected {missing[0]}=... on the command line)", file=sys.stderr)
+        sys.exit(2)
+    unknown = settings.unknown_addition(config, settings.task_overrides(config))
+    if unknown:
+        print(f"error: {unknown}", file=sys.stderr)
         sys.exit(2)
 
 

@@ -1,9 +1,13 @@
 """Checks of a composed config before a command does anything: an impossible setting is one clear error, not a run."""
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import OverrideType
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
@@ -23,6 +27,8 @@ COUNTS = {
 }
 COUNTS_OR_ALL = {"sysid": ("batch_trajectories", "val_trajectories"), "gnn": ("val_rollouts",)}
 RATES = {"gnn": ("lr",)}
+# Top-level keys no config file sets that the code reads when given (+effects=[floor_tilt] for generate, ...).
+OPTIONAL_KEYS = ("effects", "effect_strength", "overwrite", "resume", "torch_threads")
 
 
 def check(cfg: DictConfig) -> None:
@@ -30,6 +36,9 @@ def check(cfg: DictConfig) -> None:
     missing = missing_keys(cfg)
     if missing:
         raise ContactbenchError(f"{missing[0]} is not set (expected {missing[0]}=... on the command line)")
+    unknown = unknown_addition(cfg, task_overrides(cfg))
+    if unknown:
+        raise ContactbenchError(unknown)
     budget = cfg.get("budget")
     if budget is not None:
         _check_budget(budget)
@@ -43,6 +52,39 @@ def missing_keys(config: DictConfig) -> list[str]:
     tree = OmegaConf.to_container(config, resolve=False, throw_on_missing=False)
     tree.pop("hydra", None)
     return _missing(tree, "")
+
+
+def task_overrides(config: DictConfig) -> list[str]:
+    """The command line's overrides: from the config's hydra node when it has one, else from the running Hydra app."""
+    if "hydra" in config:
+        return list(OmegaConf.select(config, "hydra.overrides.task", default=None) or [])
+    return list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+
+
+def unknown_addition(config: DictConfig, overrides: list[str]) -> str | None:
+    """The message for a `+key=value` that adds a top-level key nothing reads (a misspelling), or None.
+
+    A `+` override can only add a key that no config file sets, so it is read only when it is one of OPTIONAL_KEYS
+    or a config group (conf/<group>/); everything else would be ignored silently. `++key=...` (force) is left alone.
+    """
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except Exception:  # Hydra itself reports a malformed override
+        return None
+    groups = {path.name for path in CONFIG_DIR.iterdir() if path.is_dir()}
+    task = config.get("task_name", "this command")
+    for override in parsed:
+        key = override.key_or_group
+        if override.type != OverrideType.ADD or "." in key or "@" in key or key in OPTIONAL_KEYS or key in groups:
+            continue
+        present = [name for name in config if name != "hydra" and name != key] + list(OPTIONAL_KEYS)
+        close = difflib.get_close_matches(key, present, n=1)
+        hint = f"did you mean {close[0]}=...? " if close else ""
+        return (
+            f"+{key}=... adds a setting {task} does not read ({hint}expected an existing key, set without '+', "
+            f"or one of {', '.join(OPTIONAL_KEYS)})"
+        )
+    return None
 
 
 def _missing(tree, prefix: str) -> list[str]:
