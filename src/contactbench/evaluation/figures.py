@@ -145,3 +145,25 @@ def save_figure(figure, path: Path) -> Path:
     plt.close(figure)
     partial.replace(path)
     return path
+
+
+def learning_curve_figure(curves: dict[tuple[str, str], list[tuple[float, float, float]]], path: Path) -> Path:
+    """Held-out position and rotation error against training wall time; curves[(model, dataset)] = [(s, pos, rot)]."""
+    datasets = sorted({dataset for _, dataset in curves})
+    figure, axes = plt.subplots(2, len(datasets), figsize=(4.5 * len(datasets), 6), squeeze=False)
+    for column, dataset in enumerate(datasets):
+        for (model, curve_dataset), points in sorted(curves.items()):
+            if curve_dataset != dataset or not points:
+                continue
+            seconds, position, rotation = np.array(points).T
+            axes[0, column].plot(seconds, position, marker="o", label=model)
+            axes[1, column].plot(seconds, rotation, marker="o", label=model)
+        axes[0, column].set_title(dataset)
+        axes[0, column].set_ylabel("val position error (widths)")
+        axes[1, column].set_ylabel("val rotation error (rad)")
+        axes[1, column].set_xlabel("training wall time (s)")
+        for axis in axes[:, column]:
+            axis.set_yscale("log")
+            axis.grid(True, which="both", alpha=0.3)
+            axis.legend()
+    return save_figure(figure, path)

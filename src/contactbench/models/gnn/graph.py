@@ -36,6 +36,7 @@ class MeshScene:
     body_starts: np.ndarray  # [K + 1] body k owns nodes body_starts[k] : body_starts[k + 1]
     mesh_edges: np.ndarray  # [2, E] directed (sender, receiver) node pairs, both directions of every mesh edge
     widths: np.ndarray  # [K] body widths (largest bounding-box extent), m
+    faces: np.ndarray  # [F, 3] node indices of every body's triangles, counter-clockwise seen from outside
 
     @classmethod
     def from_recordings(cls, dataset: Recordings) -> "MeshScene":
@@ -48,6 +49,7 @@ class MeshScene:
             body_starts=body_starts,
             mesh_edges=mesh_edges,
             widths=np.array([mesh.width for mesh in meshes]),
+            faces=np.concatenate([mesh.faces + start for mesh, start in zip(meshes, body_starts)]),
         )
 
     @property

@@ -13,16 +13,22 @@ Normalisation statistics are computed from the train split when fitting starts a
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytorch_lightning as pl
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
 
 from contactbench.metrics import position_error, rotation_error
-from contactbench.models.base import make_context
+from contactbench.models.base import ContactModel, make_context
 from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, MeshScene, collision_radius
+from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
 from contactbench.recordings import Recordings, Split
+
+
+LR_SCHEDULES = ("constant", "cosine")
 
 
 def evenly_spaced(count: int, chosen: int | None) -> np.ndarray:
@@ -44,7 +50,7 @@ class VertexWindows(Dataset):
     so a batch's vertices are placed in one vectorised call.
     """
 
-    def __init__(self, split: Split, scene: MeshScene, window_frames: int, max_windows: int | None = None):
+    def __init__(self, split: Split, scene: MeshScene, window_frames: int, max_windows: int | None = None, as_poses: bool = False):
         fits = np.arange(split.n_frames)[None, :] <= (split.lengths - window_frames)[:, None]
         trajectories, starts = np.nonzero(fits)
         keep = evenly_spaced(len(trajectories), max_windows)
@@ -52,6 +58,7 @@ class VertexWindows(Dataset):
         self.poses = split.poses
         self.scene = scene
         self.window_frames = window_frames
+        self.as_poses = as_poses
 
     def __len__(self) -> int:
         return len(self.trajectories)
@@ -60,6 +67,8 @@ class VertexWindows(Dataset):
         indices = np.asarray(indices)
         frames = self.starts[indices][..., None] + np.arange(self.window_frames)
         poses = self.poses[self.trajectories[indices][..., None], frames]
+        if self.as_poses:  # the rigid GNN differences poses in float64
+            return torch.from_numpy(poses)
         return torch.from_numpy(self.scene.world_vertices(poses).astype(np.float32))
 
 
@@ -75,16 +84,20 @@ class GNNDataModule(pl.LightningDataModule):
         velocity_history: int = 5,
         val_windows: int | None = 4096,
         val_batch_size: int = 256,
+        rigid: bool = False,
+        batch_vertices: int | None = None,
     ):
         super().__init__()
         check_history_fits(context_frames, velocity_history)
         self.dataset = dataset
         self.scene = MeshScene.from_recordings(dataset)
-        self.batch_size = batch_size
+        # A batch of a fixed number of vertices costs about the same for a cube or five: budgets hold for every variant.
+        self.batch_size = batch_size if batch_vertices is None else max(1, batch_vertices // self.scene.n_nodes)
         self.num_workers = num_workers
         self.window_frames = velocity_history + 2
         self.val_windows = val_windows
         self.val_batch_size = val_batch_size
+        self.rigid = rigid
 
     def _loader(self, windows: VertexWindows, sampler, batch_size: int) -> DataLoader:
         if len(windows) == 0:
@@ -98,11 +111,11 @@ class GNNDataModule(pl.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        windows = VertexWindows(self.dataset.split("train"), self.scene, self.window_frames)
+        windows = VertexWindows(self.dataset.split("train"), self.scene, self.window_frames, as_poses=self.rigid)
         return self._loader(windows, RandomSampler(windows), self.batch_size)
 
     def val_dataloader(self) -> DataLoader:
-        windows = VertexWindows(self.dataset.split("val"), self.scene, self.window_frames, self.val_windows)
+        windows = VertexWindows(self.dataset.split("val"), self.scene, self.window_frames, self.val_windows, as_poses=self.rigid)
         return self._loader(windows, SequentialSampler(windows), self.val_batch_size)
 
 
@@ -123,30 +136,44 @@ class GNNModule(pl.LightningModule):
         val_rollouts: int | None = 16,
         per_step_projection: bool = False,
         rollout_batch_size: int = 256,
+        rigid: bool = False,
+        contact_distance_fraction: float = 0.25,
+        lr_schedule: str = "constant",
     ):
         super().__init__()
         self.save_hyperparameters(ignore=["dataset"])
         check_history_fits(context_frames, velocity_history)
+        if lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
         self.dataset = dataset
         scene = MeshScene.from_recordings(dataset)
-        self.simulator = LearnedSimulator(
-            scene,
-            dt=dataset.dt,
-            floor_z=dataset.floor_z,
-            radius=collision_radius(scene.widths, collision_radius_fraction),
-            velocity_history=velocity_history,
-            latent_size=latent_size,
-            message_passing_steps=message_passing_steps,
-            hidden_layers=mlp_hidden_layers,
-            noise_std=noise_std,
-        )
+        options = {
+            "dt": dataset.dt,
+            "floor_z": dataset.floor_z,
+            "radius": collision_radius(scene.widths, collision_radius_fraction),
+            "velocity_history": velocity_history,
+            "latent_size": latent_size,
+            "message_passing_steps": message_passing_steps,
+            "hidden_layers": mlp_hidden_layers,
+            "noise_std": noise_std,
+        }
+        if rigid:
+            contact_distance = contact_distance_fraction * float(np.max(scene.widths))
+            self.simulator = RigidLearnedSimulator(scene, gravity=dataset.gravity, contact_distance=contact_distance, **options)
+        else:
+            self.simulator = LearnedSimulator(scene, **options)
 
     def setup(self, stage: str) -> None:
         if stage == "fit" and not bool(self.simulator.normalisation_fitted):
             self.simulator.fit_normalisation(self.dataset.split("train"))
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+    def configure_optimizers(self):
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        if self.hparams.lr_schedule == "constant":
+            return optimizer
+        # cosine decay to 1% of lr over the run's max_steps: large steps early, fine ones while selecting on val
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, self.trainer.max_steps), eta_min=0.01 * self.hparams.lr)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
 
     def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
         loss = self.simulator.loss(batch, add_noise=True)
@@ -156,10 +183,21 @@ class GNNModule(pl.LightningModule):
     def validation_step(self, batch: torch.Tensor, batch_idx: int) -> None:
         self.log("val/one_step_loss", self.simulator.loss(batch, add_noise=False), batch_size=len(batch))
 
+    def on_train_start(self) -> None:
+        self._clock = {"started": time.perf_counter(), "validating": 0.0, "validation_started": 0.0}
+
+    def on_validation_epoch_start(self) -> None:
+        if hasattr(self, "_clock"):
+            self._clock["validation_started"] = time.perf_counter()
+
     def on_validation_epoch_end(self) -> None:
         errors = self.validation_rollout_errors()
         self.log("val/rollout_pos_err", errors["pos_err"], prog_bar=True)
         self.log("val/rollout_rot_err", errors["rot_err"])
+        if hasattr(self, "_clock"):  # training seconds in this process, validation excluded: learning curves' x-axis
+            clock = self._clock
+            self.log("train/seconds", clock["validation_started"] - clock["started"] - clock["validating"])
+            clock["validating"] += time.perf_counter() - clock["validation_started"]
 
     def validation_rollout_errors(self) -> dict[str, float]:
         """Mean position (/ width) and rotation (rad) errors of rollouts of the chosen val trajectories."""
@@ -181,7 +219,9 @@ class GNNModule(pl.LightningModule):
             for name, values in per_frame.items()
         }
 
-    def to_contact_model(self) -> GNNContactModel:
+    def to_contact_model(self) -> ContactModel:
         if not bool(self.simulator.normalisation_fitted):
             raise RuntimeError("the GNN has no normalisation statistics yet: train it (or load a checkpoint) first")
+        if self.hparams.rigid:
+            return RigidGNNContactModel(self.simulator, self.hparams.rollout_batch_size)
         return GNNContactModel(self.simulator, self.hparams.per_step_projection, self.hparams.rollout_batch_size)

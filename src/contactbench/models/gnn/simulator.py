@@ -51,6 +51,9 @@ def random_walk_noise(positions: torch.Tensor, std: float) -> torch.Tensor:
 class LearnedSimulator(nn.Module):
     """The graph network wrapped as a one-step simulator of a scene's mesh vertices."""
 
+    extra_node_features = 0  # subclasses that add node or edge features say how many
+    extra_edge_features = 0
+
     def __init__(
         self,
         scene: MeshScene,
@@ -84,8 +87,8 @@ class LearnedSimulator(nn.Module):
         self.register_buffer("acceleration_std", torch.ones(3))
         self.register_buffer("normalisation_fitted", torch.tensor(False))
         self.network = EncodeProcessDecode(
-            node_input_size=3 * velocity_history + 1,
-            edge_input_size=EDGE_FEATURES,
+            node_input_size=3 * velocity_history + 1 + self.extra_node_features,
+            edge_input_size=EDGE_FEATURES + self.extra_edge_features,
             output_size=3,
             latent_size=latent_size,
             message_passing_steps=message_passing_steps,
@@ -192,10 +195,20 @@ class LearnedSimulator(nn.Module):
         return torch.stack(predicted, dim=1) if predicted else context[:, :0]
 
 
+def check_same_scene(simulator: LearnedSimulator, dataset: Recordings, context: Context) -> None:
+    """Refuse a dataset whose meshes differ from the training scene's, or a context too short for the history."""
+    scene = simulator.scene
+    given = MeshScene.from_recordings(dataset)
+    if given.n_nodes != scene.n_nodes or not np.array_equal(given.mesh_edges, scene.mesh_edges) or not np.allclose(given.rest_vertices, scene.rest_vertices):
+        raise ValueError(f"dataset {dataset.name!r} has other meshes than the scene this GNN was trained on")
+    if context.n_context < simulator.velocity_history + 1:
+        raise ValueError(f"the GNN needs {simulator.velocity_history + 1} context frames, got {context.n_context}")
+
+
 class GNNContactModel(ContactModel):
     """A trained simulator as a contact model: vertex rollout from the context, then shape matching to poses."""
 
-    name = "gnn"
+    name = "gnn_paper"
 
     def __init__(self, simulator: LearnedSimulator, per_step_projection: bool = False, batch_size: int = 256):
         self.simulator = simulator
@@ -203,12 +216,8 @@ class GNNContactModel(ContactModel):
         self.batch_size = batch_size
 
     def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
+        check_same_scene(self.simulator, dataset, context)
         scene = self.simulator.scene
-        given = MeshScene.from_recordings(dataset)
-        if given.n_nodes != scene.n_nodes or not np.array_equal(given.mesh_edges, scene.mesh_edges) or not np.allclose(given.rest_vertices, scene.rest_vertices):
-            raise ValueError(f"dataset {dataset.name!r} has other meshes than the scene this GNN was trained on")
-        if context.n_context < self.simulator.velocity_history + 1:
-            raise ValueError(f"the GNN needs {self.simulator.velocity_history + 1} context frames, got {context.n_context}")
         n_steps = context.horizon - context.n_context
         vertices = scene.world_vertices(context.poses)
         device = self.simulator.rest_vertices.device

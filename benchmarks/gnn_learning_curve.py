@@ -1,0 +1,62 @@
+"""Learning curves of the mesh GNNs on this machine: held-out (val) rollout error against training wall time.
+
+Trains `gnn` (rigid, budget=quick) and `gnn_paper` (§4.3 as printed, budget=quick's network, given the same number
+of steps) on frictioncubes μ = 0.5 and on the real cube through the real pipeline (runs.train), then writes
+curves.csv and learning_curves.png beside the runs. Val only: the test split is the report's.
+    python benchmarks/gnn_learning_curve.py [--out outputs/benchmarks/gnn_learning_curve] [--budget quick]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+from contactbench import runs
+from contactbench.config import CONFIG_DIR, REPO_ROOT
+from contactbench.evaluation.figures import learning_curve_figure
+
+VARIANTS = ("frictioncubes_0.5", "contactnets_cube")
+MODELS = ("gnn", "gnn_paper")
+
+
+def curve(run_dir: Path) -> list[tuple[float, float, float]]:
+    """(training seconds, val rollout position error, val rollout rotation error) at every validation of a run."""
+    with open(run_dir / "csv" / "metrics.csv", newline="") as handle:
+        rows = [row for row in csv.DictReader(handle) if row.get("val/rollout_pos_err") and row.get("train/seconds")]
+    return [(float(row["train/seconds"]), float(row["val/rollout_pos_err"]), float(row["val/rollout_rot_err"])) for row in rows]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=REPO_ROOT / "outputs" / "benchmarks" / "gnn_learning_curve")
+    parser.add_argument("--budget", default="quick")
+    args = parser.parse_args()
+    curves, table = {}, []
+    for variant in VARIANTS:
+        for model in MODELS:
+            run_dir = args.out / f"{model}_{variant}"
+            with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+                cfg = compose(config_name="train", overrides=[f"model={model}", f"variant={variant}", f"budget={args.budget}", "resume=false"])
+            if model == "gnn_paper":  # the same steps and validations as gnn: the curves then span similar times
+                cfg.budget.gnn_paper.max_steps = cfg.budget.gnn.max_steps
+                cfg.budget.gnn_paper.val_check_interval = cfg.budget.gnn.val_check_interval
+                cfg.budget.gnn_paper.val_rollouts = cfg.budget.gnn.val_rollouts
+            started = time.perf_counter()
+            val_pos_err = runs.train(cfg, run_dir)
+            points = curve(run_dir)
+            curves[(model, cfg.dataset.name)] = points
+            table.append({"model": model, "variant": variant, "wall_s": round(time.perf_counter() - started, 1), "val_pos_err": round(val_pos_err, 4)})
+            print(f"{model:10s} {variant:18s} wall {table[-1]['wall_s']:7.1f} s  val pos_err {val_pos_err:.4f}  curve {points}", flush=True)
+    with open(args.out / "curves.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["model", "dataset", "train_seconds", "val_rollout_pos_err", "val_rollout_rot_err"])
+        for (model, dataset), points in curves.items():
+            writer.writerows([model, dataset, *point] for point in points)
+    print(f"wrote {learning_curve_figure(curves, args.out / 'learning_curves.png')} and {args.out / 'curves.csv'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,233 @@
+"""Rigid mesh GNN: per-vertex outputs projected onto one rigid acceleration per body, integrated as rigid bodies.
+
+The paper's GNN (simulator.py) moves every vertex on its own and restores rigidity once, after the rollout. Here
+rigidity holds at every step by construction, as Allen et al. (2022) obtain with shape matching inside the loop:
+- The graph, features and network are the paper's (vertices as nodes, mesh and collision edges, clipped floor height,
+  a history of finite-difference vertex velocities).
+- The network's per-vertex outputs f_i are *contact* accelerations; each body's rigid acceleration is their least-
+  squares rigid fit about the vertex centroid c: linear a = mean f_i, angular α = J⁻¹ Σ r_i × f_i with
+  J = Σ (|r_i|² I − r_i r_iᵀ), r_i = x_i − c (shape matching linearised to accelerations, so it is linear and
+  differentiable, with none of the SVD's degenerate gradients for cubes). The centre of mass then accelerates by
+  a − α × (c − x_com).
+- Gravity is the scene's (meta.gravity) plus a learned constant correction (three parameters, zero at the start),
+  so a tracker's time base or scale (an apparent gravity) is learned, not hard-wired.
+- Contact gate: a vertex contributes only when it is within `contact_distance` of the floor or has a collision edge
+  to another body. Far from everything a body follows gravity exactly, with constant velocity and spin: the network
+  spends nothing on free flight, and free flight drifts nowhere. (Every benchmark solid has an isotropic inertia, so
+  torque-free spin is constant.)
+- Semi-implicit Euler on poses, the engines' own scheme: v_{t+1} = v_t + a dt, x_{t+1} = x_t + v_{t+1} dt,
+  q_{t+1} = exp(ω_{t+1} dt) ⊗ q_t, with v_t, ω_t backward differences of the last two poses, so exact
+  accelerations reproduce recorded PyBullet frames exactly. Training targets are the same accelerations computed
+  from recorded poses, compared as the vertex accelerations they imply (a + α × r_i), normalised per axis.
+- Training noise: the paper's random walk on the input positions, and its rotational twin on orientations with a
+  last-step scale of noise_std / half-width (the same displacement at a corner); the target frame is shifted by the
+  last input frame's noise, so the model learns to cancel velocity noise.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from contactbench.models.base import ContactModel, Context
+from contactbench.models.gnn import quaternions
+from contactbench.models.gnn.graph import MeshScene, build_edges
+from contactbench.models.gnn.simulator import LearnedSimulator, check_same_scene, random_walk_noise
+from contactbench.recordings import Recordings
+
+
+class RigidLearnedSimulator(LearnedSimulator):
+    """The paper's graph network, its per-vertex outputs turned into rigid-body accelerations and integrated."""
+
+    extra_node_features = 2
+    extra_edge_features = 4
+
+    def __init__(
+        self, scene: MeshScene, dt: float, floor_z: float, gravity: np.ndarray, radius: float, contact_distance: float, **options
+    ):
+        self.contact_distance = contact_distance
+        super().__init__(scene, dt, floor_z, radius, **options)
+        node_body = torch.as_tensor(scene.node_body)
+        rest = torch.as_tensor(scene.rest_vertices, dtype=torch.float64)
+        counts = torch.bincount(node_body).to(torch.float64)
+        centroids = torch.zeros(scene.n_bodies, 3, dtype=torch.float64).index_add_(0, node_body, rest) / counts[:, None]
+        offsets = rest - centroids[node_body]
+        spread = torch.einsum("ni,nj->nij", offsets, offsets)
+        second_moment = torch.zeros(scene.n_bodies, 3, 3, dtype=torch.float64).index_add_(0, node_body, spread)
+        geometric_inertia = torch.diagonal(second_moment, dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3) - second_moment
+        self.register_buffer("rest_vertices_double", rest, persistent=False)
+        self.register_buffer("rest_centroids", centroids, persistent=False)
+        self.register_buffer("vertex_counts", counts, persistent=False)
+        self.register_buffer("inverse_geometric_inertia", torch.linalg.inv(geometric_inertia), persistent=False)
+        self.register_buffer("scene_gravity", torch.as_tensor(np.asarray(gravity, dtype=np.float64)), persistent=False)
+        self.register_buffer("half_widths", torch.as_tensor(scene.widths / 2, dtype=torch.float64), persistent=False)
+        self.gravity_correction = nn.Parameter(torch.zeros(3))
+        self.register_buffer("faces", torch.as_tensor(scene.faces), persistent=False)
+        self.register_buffer("face_body", torch.as_tensor(scene.node_body[scene.faces[:, 0]]), persistent=False)
+
+    # ------------------------------------------------------------ kinematics
+
+    def vertices(self, poses: torch.Tensor) -> torch.Tensor:
+        """World vertex positions [..., n, 3] of poses [..., K, 7] (float64)."""
+        body_poses = poses[..., self.node_body, :]
+        return body_poses[..., :3] + quaternions.rotate(body_poses[..., 3:], self.rest_vertices_double)
+
+    def velocities(self, previous: torch.Tensor, current: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Backward-difference linear and world angular velocities [..., K, 3] between two pose frames."""
+        linear = (current[..., :3] - previous[..., :3]) / self.dt
+        return linear, quaternions.angular_velocity(previous[..., 3:], current[..., 3:], self.dt)
+
+    def per_body_sum(self, values: torch.Tensor) -> torch.Tensor:
+        """[B, n, ...] summed over each body's nodes -> [B, K, ...]."""
+        out = values.new_zeros(values.shape[0], self.scene.n_bodies, *values.shape[2:])
+        return out.index_add_(1, self.node_body, values)
+
+    # ------------------------------------------------------------ one step
+
+    def node_features_double(self, vertices: torch.Tensor) -> torch.Tensor:
+        """The paper's node features, velocities differenced in float64 before the float32 network sees them, and two
+        finer heights in units of the contact distance: now, and at the next frame if the vertex flew on freely
+        (h + (v_z + g_z dt) dt, negative when the next step would reach the floor: where an impact is decided)."""
+        velocities = torch.diff(vertices, dim=1) / self.dt
+        history = ((velocities - self.velocity_mean) / self.velocity_std).permute(0, 2, 1, 3).flatten(2)
+        height = vertices[:, -1, :, 2:] - self.floor_z
+        free_flight = height + (velocities[:, -1, :, 2:] + self.scene_gravity[2] * self.dt) * self.dt
+        fine = (torch.cat([height, free_flight], dim=-1) / self.contact_distance).clamp(min=-1.0, max=1.0)
+        coarse = height.clamp(max=self.radius) / self.radius
+        return torch.cat([history, coarse, fine], dim=-1).flatten(0, 1).float()
+
+    def edge_features(self, current: torch.Tensor, edge_index: torch.Tensor, n_mesh_edges: int) -> torch.Tensor:
+        """The paper's 9 edge features, and on collision edges how deep the receiver is inside the sender's body.
+
+        For a convex body the largest signed distance of a point to its face planes is the point's signed distance
+        to the body where it is inside (−penetration depth) and a lower bound outside: the receiver's depth (in
+        collision radii, clipped to ±1) and the outward normal of that face tell the network what a vertex-face
+        contact needs, which vertex-vertex distances alone leave to guesswork (Allen et al. 2022's face edges).
+        """
+        base = super().edge_features(current, edge_index, n_mesh_edges)
+        senders, receivers = edge_index[:, n_mesh_edges:]
+        n_nodes = current.shape[1]
+        graphs = receivers // n_nodes
+        triangles = current[:, self.faces]  # [B, F, 3 corners, 3]
+        normals = torch.linalg.cross(triangles[:, :, 1] - triangles[:, :, 0], triangles[:, :, 2] - triangles[:, :, 0], dim=-1)
+        normals = normals / torch.linalg.vector_norm(normals, dim=-1, keepdim=True)
+        offsets = (normals * triangles[:, :, 0]).sum(-1)
+        points = current.flatten(0, 1)[receivers]
+        distances = torch.einsum("efc,ec->ef", normals[graphs], points) - offsets[graphs]
+        own_faces = self.face_body[None, :] == self.node_body[senders % n_nodes][:, None]
+        depth, face = distances.masked_fill(~own_faces, -torch.inf).max(dim=-1)
+        extra = base.new_zeros(base.shape[0], self.extra_edge_features)
+        extra[n_mesh_edges:, 0] = (depth / self.radius).clamp(-1.0, 1.0)
+        extra[n_mesh_edges:, 1:] = normals[graphs, face]
+        return torch.cat([base, extra], dim=-1)
+
+    def accelerations(self, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centre-of-mass linear and world angular accelerations [B, K, 3] (float64) from poses [B, H + 1, K, 7]."""
+        vertices = self.vertices(poses)
+        current = vertices[:, -1]
+        current_single = current.float()
+        edge_index, n_mesh_edges = build_edges(current_single, self.node_body, self.mesh_edges, self.radius)
+        output = self.network(
+            self.node_features_double(vertices), edge_index, self.edge_features(current_single, edge_index, n_mesh_edges)
+        ).reshape(current.shape)
+        near = current[..., 2] - self.floor_z < self.contact_distance
+        touched = torch.zeros(current.shape[0] * current.shape[1], dtype=torch.bool, device=current.device)
+        touched[edge_index[1, n_mesh_edges:]] = True
+        gate = near | touched.reshape(near.shape)
+        contact = output.double() * self.acceleration_std.double() * gate[..., None]
+        linear, angular = self.rigid_fit(contact, current, poses[:, -1])
+        return linear + self.scene_gravity + self.gravity_correction.double(), angular
+
+    def rigid_fit(self, vertex_accelerations: torch.Tensor, vertices: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rigid accelerations (centre of mass [B, K, 3], angular [B, K, 3]) nearest per-vertex ones, least squares.
+
+        vertex_accelerations, vertices [B, n, 3]; poses [B, K, 7] the bodies' current poses (float64). Centripetal
+        terms are left out: the fit is of accelerations relative to the current rotation, which the integrator adds.
+        """
+        centroids = self.per_body_sum(vertices) / self.vertex_counts[:, None]
+        offsets = vertices - centroids[:, self.node_body]
+        orientations = poses[..., 3:]
+        moments = self.per_body_sum(torch.linalg.cross(offsets, vertex_accelerations, dim=-1))
+        # J⁻¹ in world axes is R J_rest⁻¹ Rᵀ
+        in_body = quaternions.rotate(quaternions.conjugate(orientations), moments)
+        angular = quaternions.rotate(orientations, (self.inverse_geometric_inertia @ in_body[..., None])[..., 0])
+        at_centroid = self.per_body_sum(vertex_accelerations) / self.vertex_counts[:, None]
+        return at_centroid + torch.linalg.cross(angular, poses[..., :3] - centroids, dim=-1), angular
+
+    def integrate(self, history: torch.Tensor, linear_acceleration: torch.Tensor, angular_acceleration: torch.Tensor) -> torch.Tensor:
+        """The pose frame [B, K, 7] after poses [B, H + 1, K, 7] under the given accelerations (semi-implicit Euler)."""
+        velocity, spin = self.velocities(history[:, -2], history[:, -1])
+        velocity = velocity + linear_acceleration * self.dt
+        spin = spin + angular_acceleration * self.dt
+        position = history[:, -1, :, :3] + velocity * self.dt
+        orientation = quaternions.multiply(quaternions.from_rotation_vector(spin * self.dt), history[:, -1, :, 3:])
+        return torch.cat([position, orientation / torch.linalg.vector_norm(orientation, dim=-1, keepdim=True)], dim=-1)
+
+    def step(self, history: torch.Tensor) -> torch.Tensor:
+        """The pose frame [B, K, 7] after poses [B, H + 1, K, 7], with the predicted accelerations."""
+        return self.integrate(history, *self.accelerations(history))
+
+    # ------------------------------------------------------------ training
+
+    def target_accelerations(self, previous: torch.Tensor, current: torch.Tensor, following: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The accelerations [B, K, 3] that take the step from `current` to `following` (recorded poses)."""
+        velocity, spin = self.velocities(previous, current)
+        next_velocity, next_spin = self.velocities(current, following)
+        return (next_velocity - velocity) / self.dt, (next_spin - spin) / self.dt
+
+    def with_noise(self, inputs: torch.Tensor, following: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Random-walk noise on input positions and orientations; the target frame moves with the last input's."""
+        shift = random_walk_noise(inputs[..., :3], self.noise_std)
+        turn = random_walk_noise(torch.zeros_like(inputs[..., :3]), 1.0) * (self.noise_std / self.half_widths)[:, None]
+        inputs = torch.cat([inputs[..., :3] + shift, quaternions.multiply(quaternions.from_rotation_vector(turn), inputs[..., 3:])], dim=-1)
+        following = torch.cat(
+            [following[..., :3] + shift[:, -1], quaternions.multiply(quaternions.from_rotation_vector(turn[:, -1]), following[..., 3:])], dim=-1
+        )
+        return inputs, following
+
+    def loss(self, window: torch.Tensor, add_noise: bool) -> torch.Tensor:
+        """MSE of the implied vertex accelerations a + α × r_i, normalised per axis, for pose windows [B, H + 2, K, 7].
+
+        """
+        window = window.double()
+        inputs, following = window[:, :-1], window[:, -1]
+        if add_noise and self.noise_std > 0:
+            inputs, following = self.with_noise(inputs, following)
+        linear, angular = self.accelerations(inputs)
+        target_linear, target_angular = self.target_accelerations(inputs[:, -2], inputs[:, -1], following)
+        offsets = self.vertices(inputs[:, -1]) - inputs[:, -1, self.node_body, :3]
+        error = (linear - target_linear)[:, self.node_body] + torch.linalg.cross((angular - target_angular)[:, self.node_body], offsets, dim=-1)
+        return torch.mean(torch.square(error / self.acceleration_std.double())).float()
+
+    # ------------------------------------------------------------ rollouts
+
+    @torch.no_grad()
+    def rollout(self, context: torch.Tensor, n_steps: int) -> torch.Tensor:
+        """The n_steps pose frames [B, n_steps, K, 7] after context poses [B, C, K, 7] (float64)."""
+        history = context[:, -(self.velocity_history + 1) :]
+        predicted = []
+        for _ in range(n_steps):
+            following = self.step(history)
+            predicted.append(following)
+            history = torch.cat([history[:, 1:], following[:, None]], dim=1)
+        return torch.stack(predicted, dim=1) if predicted else context[:, :0]
+
+
+class RigidGNNContactModel(ContactModel):
+    """A trained rigid simulator as a contact model: rigid poses straight from the rollout, no projection after."""
+
+    name = "gnn"
+
+    def __init__(self, simulator: RigidLearnedSimulator, batch_size: int = 256):
+        self.simulator = simulator
+        self.batch_size = batch_size
+
+    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
+        check_same_scene(self.simulator, dataset, context)
+        n_steps = context.horizon - context.n_context
+        device = self.simulator.rest_vertices.device
+        predicted = [
+            self.simulator.rollout(torch.as_tensor(context.poses[start : start + self.batch_size], device=device), n_steps).cpu().numpy()
+            for start in range(0, context.poses.shape[0], self.batch_size)
+        ]
+        return np.concatenate([context.poses, np.concatenate(predicted)], axis=1)
