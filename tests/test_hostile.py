@@ -11,6 +11,7 @@ import shutil
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -591,3 +592,124 @@ def test_the_readme_diagnose_example_with_commas_parses():
         cfg = compose_config("diagnose", arguments, Path("/tmp"))
         assert cfg.recordings == "data/frictioncubes/friction=0.5,effects=floor_tilt,strength=2"
     assert compose_config("diagnose", ["recordings='my data/a,b=1 \\'c\\''"], Path("/tmp")).recordings == "my data/a,b=1 'c'"
+
+
+# ---------------------------------------------------------------- property-based fuzzing of the reader
+
+from hypothesis import HealthCheck, given, settings as hypothesis_settings, strategies as st  # noqa: E402
+
+
+def _valid_files() -> dict[str, bytes]:
+    """A valid small dataset's files (meta.json, meshes/cube.obj, train.npz), as bytes."""
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder) / "ds"
+        write_recordings(root, falling_cubes(n_trajectories=2, n_frames=5, n_bodies=2))
+        return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file() and p.name != "val.npz" and p.name != "test.npz"}
+
+
+VALID = _valid_files()
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(min_value=-(10**30), max_value=10**30) | st.floats(allow_nan=True, allow_infinity=True)
+    | st.sampled_from(["", "train.npz", "../train.npz", "/etc/passwd", "meshes/cube.obj", "rigid-contact-recordings", "a\x00b", "\\x"]),
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.sampled_from(["train", "name", "mesh", "mass", "x"]), children, max_size=3),
+    max_leaves=6,
+)
+META_PLACES = ["format", "version", "name", "dt", "gravity", "floor_z", "bodies", "splits", "splits.train",
+               "bodies.0", "bodies.0.mesh", "bodies.0.mass", "bodies.0.inertia_diagonal", "bodies.1.name", "gravity.2"]
+
+
+def _edit_place(meta: dict, place: str, value, delete: bool) -> None:
+    *parents, last = place.split(".")
+    node = meta
+    for part in parents:
+        node = node[int(part)] if isinstance(node, list) else node[part]
+    key = int(last) if isinstance(node, list) else last
+    if delete:
+        del node[key]
+    else:
+        node[key] = value
+
+
+def _members(payload: bytes) -> dict[str, bytes]:
+    with zipfile.ZipFile(io.BytesIO(payload)) as archive:
+        return {name: archive.read(name) for name in archive.namelist()}
+
+
+def _zipped(members: dict[str, bytes], compression: int) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=compression) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+BYTE_EDITS = st.lists(st.tuples(st.integers(min_value=0, max_value=10**6), st.integers(min_value=0, max_value=255)), min_size=1, max_size=6)
+MUTATIONS = st.one_of(
+    st.tuples(st.just("meta field"), st.sampled_from(META_PLACES), JSON_VALUES, st.booleans()),
+    st.tuples(st.just("npz bytes"), BYTE_EDITS, st.integers(min_value=0, max_value=10**6)),  # flips, then cut at
+    st.tuples(st.just("npy member"), st.sampled_from(["poses.npy", "lengths.npy", "velocities.npy", "source_index.npy"]), BYTE_EDITS,
+              st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED])),
+    st.tuples(st.just("npy header"), st.sampled_from(["poses.npy", "lengths.npy"]),
+              st.sampled_from(["shape", "descr", "fortran_order"]), st.sampled_from(["(1000000000000, 5, 2, 7)", "(-1,)", "()", "'<f4'", "'|O'", "'>f8'", "True", "(2, 5, 2, 7, 1)", "'<c16'", "'<i8'", "(0, 5, 2, 7)", "[1]"])),
+    st.tuples(st.just("mesh bytes"), BYTE_EDITS),
+)
+
+
+def _apply(files: dict[str, bytes], mutation) -> dict[str, bytes]:
+    files = dict(files)
+    kind = mutation[0]
+    if kind == "meta field":
+        _, place, value, delete = mutation
+        meta = json.loads(files["meta.json"])
+        try:
+            _edit_place(meta, place, value, delete)
+        except (KeyError, IndexError, TypeError):
+            pass
+        files["meta.json"] = json.dumps(meta).encode()
+    elif kind in ("npz bytes", "mesh bytes"):
+        name = "train.npz" if kind == "npz bytes" else "meshes/cube.obj"
+        data = bytearray(files[name])
+        for position, value in mutation[1]:
+            data[position % len(data)] = value
+        if kind == "npz bytes":
+            data = data[: max(1, mutation[2] % (len(data) + 1))]
+        files[name] = bytes(data)
+    elif kind == "npy member":
+        _, member, edits, compression = mutation
+        members = _members(files["train.npz"])
+        data = bytearray(members[member])
+        for position, value in edits:
+            data[position % len(data)] = value
+        members[member] = bytes(data)
+        files["train.npz"] = _zipped(members, compression)
+    elif kind == "npy header":
+        _, member, field, value = mutation
+        members = _members(files["train.npz"])
+        array = np.lib.format.read_array(io.BytesIO(members[member]))
+        header = {"descr": repr(np.lib.format.dtype_to_descr(array.dtype)), "fortran_order": "False", "shape": repr(array.shape)}
+        header[field] = value  # the header is Python literal text: written as is, right or wrong
+        text = "{" + "".join(f"'{key}': {text}, " for key, text in header.items()) + "}"
+        text += " " * (-(len(text) + 11) % 64) + "\n"
+        buffer = io.BytesIO(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text.encode("latin1"))
+        members[member] = buffer.getvalue() + array.tobytes()
+        files["train.npz"] = _zipped(members, zipfile.ZIP_STORED)
+    return files
+
+
+@hypothesis_settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow], database=None)
+@given(MUTATIONS)
+def test_fuzzed_datasets_read_or_give_one_recordings_error(mutation):
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder) / "ds"
+        for name, data in _apply(VALID, mutation).items():
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            (root / name).write_bytes(data)
+        try:
+            dataset = read_recordings(root, ["train"])
+        except RecordingsError as error:
+            message = str(error)
+            assert message.startswith(str(root)) and "\n" not in message and "Traceback" not in message, message
+        else:
+            split = dataset.splits["train"]
+            assert split.poses.dtype == np.float64 and split.lengths.dtype == np.int64
+            assert np.isfinite(split.poses[split.valid_mask()]).all()

@@ -86,6 +86,8 @@ def read_obj(path: str | os.PathLike) -> Mesh:
             continue
         try:
             if fields[0] == "v":
+                if len(fields) < 4:
+                    raise ValueError
                 vertices.append([float(x) for x in fields[1:4]])
             elif fields[0] == "f":
                 indices = [int(token.split("/")[0]) for token in fields[1:]]
@@ -93,6 +95,9 @@ def read_obj(path: str | os.PathLike) -> Mesh:
                 faces.extend([indices[0], indices[i], indices[i + 1]] for i in range(1, len(indices) - 1))
         except ValueError:
             raise MeshError(f"{path}: line {number}: cannot parse {line.strip()!r}") from None
+    outside = next((i for face in faces for i in face if not 0 <= i < len(vertices)), None)
+    if outside is not None:
+        raise MeshError(f"{path}: a face refers to vertex {outside + 1} (expected 1..{len(vertices)}, the file's 'v' lines)")
     vertex_array = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     face_array = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if not np.all(np.isfinite(vertex_array)):

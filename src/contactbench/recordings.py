@@ -258,7 +258,8 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
         raise _fail(where, f"field 'lengths': trajectory {bad[0]} has length {lengths[bad[0]]} (expected 1..{horizon})")
     valid = split.valid_mask()
     _check_finite(poses, valid, "poses", where)
-    norms = np.linalg.norm(poses[..., 3:], axis=-1)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge component is an off-norm quaternion, said below
+        norms = np.linalg.norm(poses[..., 3:], axis=-1)
     off = valid[..., None] & (np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
     if off.any():
         t_n, t_t, t_k = np.argwhere(off)[0]
@@ -412,7 +413,7 @@ def _member(archive: zipfile.ZipFile, members: Mapping[str, zipfile.ZipInfo], na
                 shape, fortran, dtype = np.lib.format.read_array_header_2_0(handle)
             else:
                 raise ValueError(f"unsupported .npy format version {version}")
-        except ValueError as error:
+        except Exception as error:  # numpy parses the header text as a Python literal: any failure there is this one
             raise _fail(where, f"field '{name}' is not a readable .npy array ({_first_line(error)})") from None
         if dtype.hasobject:
             raise _fail(where, f"field '{name}' cannot be read without unpickling (object data); arrays must be plain numeric")
