@@ -1,10 +1,14 @@
 """Mesh GNN throughput on CPU (or GPU): training samples/s and rollout frames/s, for one cube and for three cubes.
 
+Each training rate is printed beside the bare network's (forward + backward of EncodeProcessDecode on the same
+graphs, features built once), so the ratio shows what features, edges, the rigid fit and the loss cost on top.
+
 The single-cube scene is the shipped real cube data. The three-cube scene replays three real tosses side by side,
 1.2 widths apart along x, so bodies pass within the collision radius and the graph has the size and the collision
 edges of a 3-body scene; it is for timing only (the motion is not physical where the cubes overlap).
     python benchmarks/gnn_speed.py                       # paper network (latent 128, 10 steps), batch 64
     python benchmarks/gnn_speed.py --latent-size 64 --message-passing-steps 5 --threads 1
+    python benchmarks/gnn_speed.py --rigid --latent-size 64 --message-passing-steps 5 --batch-size 128 --threads 1
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ import torch
 
 from contactbench.config import REPO_ROOT
 from contactbench.models.base import Context
+from contactbench.models.gnn.graph import build_edges
 from contactbench.models.gnn.module import GNNDataModule, GNNModule
 from contactbench.recordings import Recordings, Split, read_recordings
 
@@ -37,9 +42,11 @@ def side_by_side(recordings: Recordings, n_bodies: int) -> Recordings:
     return dataclasses.replace(recordings, meta=meta, splits=splits)
 
 
-def training_samples_per_second(module: GNNModule, dataset: Recordings, batch_size: int, steps: int) -> float:
-    loader = iter(GNNDataModule(dataset, batch_size=batch_size).train_dataloader())
-    optimizer = module.configure_optimizers()
+def training_samples_per_second(module: GNNModule, dataset: Recordings, batch_size: int, steps: int) -> tuple[float, float]:
+    """Samples/s of whole training steps, and of the bare network's forward + backward on the same graphs."""
+    rigid = module.hparams.rigid
+    loader = iter(GNNDataModule(dataset, batch_size=batch_size, velocity_history=module.hparams.velocity_history, rigid=rigid).train_dataloader())
+    optimizer = torch.optim.Adam(module.parameters(), lr=module.hparams.lr)
 
     def step():
         batch = next(loader).to(module.device)
@@ -47,12 +54,32 @@ def training_samples_per_second(module: GNNModule, dataset: Recordings, batch_si
         module.simulator.loss(batch, add_noise=True).backward()
         optimizer.step()
 
+    simulator = module.simulator
+    batch = next(loader).to(module.device)[:, :-1]
+    if rigid:
+        vertices = simulator.vertices(batch.double())
+        nodes = simulator.node_features_double(vertices)
+        current = vertices[:, -1].float()
+    else:
+        nodes, current = simulator.node_features(batch), batch[:, -1]
+    edge_index, n_mesh_edges = build_edges(current, simulator.node_body, simulator.mesh_edges, simulator.radius)
+    edges = simulator.edge_features(current, edge_index, n_mesh_edges)
+
+    def bare():
+        optimizer.zero_grad()
+        simulator.network(nodes, edge_index, edges).square().mean().backward()
+        optimizer.step()
+
+    return timed(step, steps, batch_size, module.device), timed(bare, steps, batch_size, module.device)
+
+
+def timed(step, steps: int, batch_size: int, device: torch.device) -> float:
     step()  # warm-up: allocations, first-call dispatch
-    synchronize(module.device)
+    synchronize(device)
     started = time.perf_counter()
     for _ in range(steps):
         step()
-    synchronize(module.device)
+    synchronize(device)
     return steps * batch_size / (time.perf_counter() - started)
 
 
@@ -84,6 +111,7 @@ def main() -> None:
     parser.add_argument("--latent-size", type=int, default=128)
     parser.add_argument("--message-passing-steps", type=int, default=10)
     parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--rigid", action="store_true", help="model=gnn's rigid simulator (3 velocities of history) instead of the paper's")
     parser.add_argument("--train-steps", type=int, default=10)
     parser.add_argument("--rollout-trajectories", type=int, default=16)
     parser.add_argument("--rollout-frames", type=int, default=50)
@@ -96,16 +124,20 @@ def main() -> None:
     single = read_recordings(args.dataset, splits=["train", "val"])
     print(
         f"device {args.device}, {torch.get_num_threads()} threads, latent {args.latent_size}, "
-        f"{args.message_passing_steps} message-passing steps, batch {args.batch_size}"
+        f"{args.message_passing_steps} message-passing steps, batch {args.batch_size}, {'rigid (gnn)' if args.rigid else 'paper (gnn_paper)'}"
     )
     for n_bodies in args.bodies:
         dataset = single if n_bodies == 1 else side_by_side(single, n_bodies)
-        module = GNNModule(dataset, latent_size=args.latent_size, message_passing_steps=args.message_passing_steps).to(args.device)
+        module = GNNModule(
+            dataset, latent_size=args.latent_size, message_passing_steps=args.message_passing_steps,
+            rigid=args.rigid, velocity_history=3 if args.rigid else 5,
+        ).to(args.device)
         module.setup("fit")
-        samples = training_samples_per_second(module, dataset, args.batch_size, args.train_steps)
+        samples, bare = training_samples_per_second(module, dataset, args.batch_size, args.train_steps)
         frames = rollout_frames_per_second(module, dataset, args.rollout_trajectories, args.rollout_frames)
         print(
-            f"{n_bodies} cube(s), {module.simulator.scene.n_nodes} nodes: training {samples:8.1f} samples/s, "
+            f"{n_bodies} cube(s), {module.simulator.scene.n_nodes} nodes: training {samples:8.1f} samples/s "
+            f"(bare network {bare:8.1f}/s, ratio {samples / bare:.2f}), "
             f"rollout {frames:8.1f} frames/s ({args.rollout_trajectories} trajectories batched)"
         )
 

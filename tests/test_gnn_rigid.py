@@ -194,3 +194,14 @@ def test_collision_edges_carry_the_receivers_depth_inside_the_senders_body():
     assert int(inside.sum()) > 0
     torch.testing.assert_close(features[n_mesh:][inside, 9], torch.full((int(inside.sum()),), -0.01 / simulator.radius), atol=1e-5, rtol=0)
     torch.testing.assert_close(features[n_mesh:][inside, 10:], torch.tensor([1.0, 0.0, 0.0]).expand(int(inside.sum()), 3), atol=1e-5, rtol=0)
+
+
+def test_free_flight_acceleration_is_measured_on_train_not_read_from_meta():
+    """A tracker's time base shows as an apparent gravity: the data fall at 9.81 m/s² while meta.json says 10."""
+    recordings = falling_cubes(n_trajectories=3, n_frames=20, n_bodies=2)
+    mislabelled = dataclasses.replace(recordings, meta={**recordings.meta, "gravity": [0.0, 0.0, -10.0]})
+    simulator = rigid_simulator(mislabelled)
+    torch.testing.assert_close(simulator.free_flight_acceleration, torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64), atol=1e-8, rtol=0)
+    near_floor = recordings.split("train").poses.copy()
+    near_floor[..., 2] = 0.06  # every body within the contact distance of the floor: no frame is free
+    assert not simulator.free_of_contact(torch.as_tensor(near_floor)).any()

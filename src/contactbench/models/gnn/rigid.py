@@ -9,8 +9,9 @@ rigidity holds at every step by construction, as Allen et al. (2022) obtain with
   J = Σ (|r_i|² I − r_i r_iᵀ), r_i = x_i − c (shape matching linearised to accelerations, so it is linear and
   differentiable, with none of the SVD's degenerate gradients for cubes). The centre of mass then accelerates by
   a − α × (c − x_com).
-- Gravity is the scene's (meta.gravity) plus a learned constant correction (three parameters, zero at the start),
-  so a tracker's time base or scale (an apparent gravity) is learned, not hard-wired.
+- Gravity is what the train split shows: the mean acceleration of bodies in free flight (no vertex gated in), in
+  place of meta.gravity, so a tracker's time base or length scale (an apparent gravity) is measured, not hard-wired.
+  The real cube falls at 9.59 m/s², not the 9.81 its meta.json states. Without free-flight frames: meta.gravity.
 - Contact gate: a vertex contributes only when it is within `contact_distance` of the floor or has a collision edge
   to another body. Far from everything a body follows gravity exactly, with constant velocity and spin: the network
   spends nothing on free flight, and free flight drifts nowhere. (Every benchmark solid has an isotropic inertia, so
@@ -27,13 +28,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch import nn
 
 from contactbench.models.base import ContactModel, Context
 from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges
-from contactbench.models.gnn.simulator import LearnedSimulator, check_same_scene, random_walk_noise
-from contactbench.recordings import Recordings
+from contactbench.models.gnn.simulator import STATISTICS_CHUNK, LearnedSimulator, check_same_scene, random_walk_noise
+from contactbench.recordings import Recordings, Split
 
 
 class RigidLearnedSimulator(LearnedSimulator):
@@ -61,9 +61,38 @@ class RigidLearnedSimulator(LearnedSimulator):
         self.register_buffer("inverse_geometric_inertia", torch.linalg.inv(geometric_inertia), persistent=False)
         self.register_buffer("scene_gravity", torch.as_tensor(np.asarray(gravity, dtype=np.float64)), persistent=False)
         self.register_buffer("half_widths", torch.as_tensor(scene.widths / 2, dtype=torch.float64), persistent=False)
-        self.gravity_correction = nn.Parameter(torch.zeros(3))
+        # the acceleration of bodies in free flight, measured on the train split (fit_normalisation); meta's until then
+        self.register_buffer("free_flight_acceleration", torch.as_tensor(np.asarray(gravity, dtype=np.float64)))
         self.register_buffer("faces", torch.as_tensor(scene.faces), persistent=False)
         self.register_buffer("face_body", torch.as_tensor(scene.node_body[scene.faces[:, 0]]), persistent=False)
+
+    def fit_normalisation(self, split: Split) -> None:
+        """The paper's statistics, and the free-flight acceleration: the mean second difference of the centre of mass
+        over the frames where no vertex of the body is gated in (pass train only)."""
+        super().fit_normalisation(split)
+        total, count = np.zeros(3), 0
+        for start in range(0, split.n_trajectories, STATISTICS_CHUNK):
+            part = split.select(np.arange(start, min(start + STATISTICS_CHUNK, split.n_trajectories)))
+            free = self.free_of_contact(torch.as_tensor(part.poses)).numpy()[:, 1:-1]  # [c, T - 2, K]
+            positions = part.poses[..., :3]
+            acceleration = (positions[:, 2:] - 2 * positions[:, 1:-1] + positions[:, :-2]) / self.dt**2
+            inside = free & (np.arange(1, part.n_frames - 1)[None, :, None] + 1 < part.lengths[:, None, None])
+            total += acceleration[inside].sum(axis=0)
+            count += int(inside.sum())
+        if count:
+            self.free_flight_acceleration.copy_(torch.as_tensor(total / count))
+
+    def free_of_contact(self, poses: torch.Tensor) -> torch.Tensor:
+        """[..., K] True where no vertex of the body is within the contact distance of the floor or the collision
+        radius of another body's vertex (NaN poses count as in contact)."""
+        vertices = self.vertices(poses)  # [..., n, 3]
+        near_floor = ~(vertices[..., 2] - self.floor_z >= self.contact_distance)
+        gap = torch.cdist(vertices.flatten(0, -3), vertices.flatten(0, -3)).reshape(*vertices.shape[:-1], vertices.shape[-2])
+        other = self.node_body[:, None] != self.node_body[None, :]
+        near_other = ((gap < self.radius) & other).any(dim=-1)
+        gated = (near_floor | near_other).double()
+        in_contact = torch.zeros(*gated.shape[:-1], self.scene.n_bodies, dtype=torch.float64).index_add_(-1, self.node_body, gated)
+        return in_contact == 0
 
     # ------------------------------------------------------------ kinematics
 
@@ -136,7 +165,7 @@ class RigidLearnedSimulator(LearnedSimulator):
         gate = near | touched.reshape(near.shape)
         contact = output.double() * self.acceleration_std.double() * gate[..., None]
         linear, angular = self.rigid_fit(contact, current, poses[:, -1])
-        return linear + self.scene_gravity + self.gravity_correction.double(), angular
+        return linear + self.free_flight_acceleration, angular
 
     def rigid_fit(self, vertex_accelerations: torch.Tensor, vertices: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The rigid accelerations (centre of mass [B, K, 3], angular [B, K, 3]) nearest per-vertex ones, least squares.
