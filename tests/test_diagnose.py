@@ -43,7 +43,12 @@ def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_pat
     assert sum(with_generator["located"]["phase_shares"].values()) == pytest.approx(1.0)
     assert {"base", "augmented", "improvement", "ci95"} <= set(with_generator["heldout"])
     assert {"pos_err", "rot_err_rad"} <= set(with_generator["heldout"]["base"])
+    # a smoke verdict says so, in the JSON and in the report's first lines
+    assert with_generator["budget_name"] == "smoke" and with_generator["conclusive"] is False
+    assert "NOT conclusive" in with_generator["budget_note"] and with_generator["budget"]["fit_trajectories"] == 8
     report = (tmp_path / "a" / "report.md").read_text()
+    head = "\n".join(report.splitlines()[:6])
+    assert "At budget=smoke (not conclusive)" in head and "Budget: smoke" in head and "NOT conclusive" in head
     assert "Verdict" in report and (tmp_path / "a" / "figures" / "residual_by_phase.png").stat().st_size > 10_000
 
 
@@ -63,3 +68,18 @@ def test_bad_recordings_path_is_one_clear_line(tmp_path):
     result = run_entry_point("diagnose.py", [f"recordings={tmp_path}/nowhere", "budget=smoke"], tmp_path)
     assert result.returncode == 2
     assert result.stderr.strip().startswith("error:") and "nowhere" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_only_a_smoke_budget_is_called_inconclusive():
+    from contactbench.diagnosis.pipeline import Budget
+    from contactbench.diagnosis.report import budget_sentence, summary_sentence
+
+    held = {"base": {"pos_err": 0.3}, "augmented": {"pos_err": 0.2}, "improvement": 0.3, "ci95": [0.1, 0.4], "confirmed": True}
+    document = {"verdict": "effect", "effects": [{"name": "air_drag", "physics": "drag"}], "heldout": held,
+                "located": {"where": "impact"}, "located_after": {"where": "impact"}, "budget": Budget().__dict__}
+    quick = {**document, "budget_name": "quick", "conclusive": True}
+    assert "conclusive" not in budget_sentence(quick) and "conclusive" not in summary_sentence(quick)
+    assert budget_sentence(quick).startswith("Budget: quick (60 train tosses fitted, 120 val tosses")
+    smoke = {**document, "budget_name": "smoke", "conclusive": False}
+    assert summary_sentence(smoke).startswith("At budget=smoke (not conclusive): Missing: air_drag")
+    assert "NOT conclusive" in budget_sentence(smoke)

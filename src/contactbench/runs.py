@@ -204,7 +204,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
 def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     """Diagnose a recordings dataset (never reading meta.generator); writes diagnosis.json and report.md. Returns the verdict."""
     from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
-    from contactbench.diagnosis.report import summary_sentence, write_diagnosis
+    from contactbench.diagnosis.report import budget_sentence, summary_sentence, write_diagnosis
 
     settings.check(cfg)
     folders.check(cfg, Path(output_dir), "diagnose")
@@ -217,6 +217,9 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
         dataset, Budget(**cfg.budget.diagnose), Decision(margin=float(cfg.margin)), seed=int(cfg.seed), context_frames=int(cfg.context_frames)
     )
     document["recordings"] = str(path)
+    document["budget_name"] = str(cfg.budget.name)
+    document["conclusive"] = document["budget_name"] != "smoke"  # smoke checks the pipeline runs, nothing more
+    document["budget_note"] = budget_sentence(document)
     report = write_diagnosis(document, arrays, Path(output_dir))
     log.info("%s", summary_sentence(document))
     log.info("report: %s", report)

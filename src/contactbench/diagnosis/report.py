@@ -31,7 +31,26 @@ def write_diagnosis(document: dict, arrays: dict, out_dir: Path) -> Path:
     return out_dir / "report.md"
 
 
+def budget_sentence(document: dict) -> str:
+    """The budget the verdict was reached at; at smoke, plainly that the verdict is not conclusive."""
+    name, budget = document.get("budget_name", "custom"), document["budget"]
+    size = (f"{budget['fit_trajectories']} train tosses fitted, {budget['val_trajectories']} val tosses judging, "
+            f"{budget['base_evaluations']} base evaluations, at most {budget['max_effects']} effect(s) from "
+            f"{budget['front_runners']} front-runner(s), {budget['bootstrap']} bootstrap resamples")
+    if not document.get("conclusive", True):
+        return (f"Budget: {name} ({size}). This checks that the pipeline runs, nothing more: the verdict is NOT "
+                f"conclusive; run budget=quick (the default) or budget=paper before reading anything into it.")
+    return f"Budget: {name} ({size})."
+
+
 def summary_sentence(document: dict) -> str:
+    text = _verdict_sentence(document)
+    if not document.get("conclusive", True):
+        text = f"At budget={document.get('budget_name')} (not conclusive): {text}"
+    return text
+
+
+def _verdict_sentence(document: dict) -> str:
     held = document["heldout"]
     where = document["located"]["where"]
     if document["verdict"] == "none":
@@ -50,7 +69,9 @@ def _markdown(document: dict, figures: list[Path]) -> str:
     held = document["heldout"]
     lines = [
         "# Diagnosis", "", summary_sentence(document), "",
-        f"Verdict: **{document['verdict']}**. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).", "",
+        "## First, model-free: free flight", "", document["free_flight"]["sentence"], "",
+        *_free_flight_table(document["free_flight"]), budget_sentence(document), "",
+        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).", "",
         "## Held-out (test, full rollouts from the context frames)", "",
         "| model | position error (widths) | rotation error (rad) |", "|---|---|---|",
         f"| base | {held['base']['pos_err']:.4f} | {held['base']['rot_err_rad']:.4f} |",
@@ -72,6 +93,16 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         lines.append(f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | {located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |")
     lines += ["", *[f"![{path.stem}](figures/{path.name})" for path in figures], ""]
     return "\n".join(lines)
+
+
+def _free_flight_table(found: dict) -> list[str]:
+    lines = ["| split | tosses | free-flight frames | acceleration x, y, z (m/s²) | along gravity, 95% CI |", "|---|---|---|---|---|"]
+    for name, part in found["splits"].items():
+        if part.get("n_frames"):
+            ci = part["along_gravity_ci95"]
+            lines.append(f"| {name} | {part['n_trajectories']} | {part['n_frames']} | {', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
+                         f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] |")
+    return lines + [""]
 
 
 def _phase_components(located: dict, path: Path) -> Path:
