@@ -24,6 +24,16 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------- data
 
 
+def generated_folder(cfg: DictConfig) -> tuple[str, Path]:
+    """The variant name and folder generate.py writes: dataset.path, or a folder beside it with +effects=[...]."""
+    path, variant = Path(cfg.dataset.path), str(cfg.dataset.variant)
+    effects = list(cfg.get("effects") or [])
+    if effects:  # a dataset of its own beside the plain variant, same tosses
+        variant = f"{variant},effects={'+'.join(effects)},strength={float(cfg.get('effect_strength', 1.0)):g}"
+        path = path.with_name(variant)
+    return variant, path
+
+
 def generate(cfg: DictConfig) -> Path:
     """Generate the configured synthetic variant into dataset.path (kept if already there and valid)."""
     from contactbench.generation.generator import generate_dataset
@@ -34,10 +44,7 @@ def generate(cfg: DictConfig) -> Path:
         return path
     effects = list(cfg.get("effects") or [])
     strength = float(cfg.get("effect_strength", 1.0))
-    variant = cfg.dataset.variant
-    if effects:  # a dataset of its own beside the plain variant, same tosses
-        variant = f"{variant},effects={'+'.join(effects)},strength={strength:g}"
-        path = path.with_name(variant)
+    variant, path = generated_folder(cfg)
     if (path / "meta.json").exists() and not cfg.get("overwrite", False):
         try:
             read_meta(path)
