@@ -2,13 +2,15 @@
 
 Trains `gnn` (rigid, budget=quick) and `gnn_paper` (§4.3 as printed, budget=quick's network, given the same number
 of steps) on frictioncubes μ = 0.5 and on the real cube through the real pipeline (runs.train), then writes
-curves.csv and learning_curves.png beside the runs. Val only: the test split is the report's.
+curves.csv and learning_curves.png beside the runs. Val only: the test split is the report's. A run folder that
+already holds a finished run (fitted.json) is read, not trained again: link a matrix run there to reuse it.
     python benchmarks/gnn_learning_curve.py [--out outputs/benchmarks/gnn_learning_curve] [--budget quick]
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import time
 from pathlib import Path
 
@@ -45,7 +47,10 @@ def main() -> None:
                 cfg.budget.gnn_paper.val_check_interval = cfg.budget.gnn.val_check_interval
                 cfg.budget.gnn_paper.val_rollouts = cfg.budget.gnn.val_rollouts
             started = time.perf_counter()
-            val_pos_err = runs.train(cfg, run_dir)
+            if (run_dir / "fitted.json").is_file():
+                val_pos_err = json.loads((run_dir / "val" / "metrics.json").read_text())["pos_err"]
+            else:
+                val_pos_err = runs.train(cfg, run_dir)
             points = curve(run_dir)
             curves[(model, cfg.dataset.name)] = points
             table.append({"model": model, "variant": variant, "wall_s": round(time.perf_counter() - started, 1), "val_pos_err": round(val_pos_err, 4)})

@@ -1,6 +1,7 @@
 """The rigid mesh GNN (model=gnn): torch quaternions, the rigid fit, exact free flight, rigidity, training, configs."""
 from __future__ import annotations
 
+import csv
 import dataclasses
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytorch_lightning as pl
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from pytorch_lightning.callbacks import ModelCheckpoint
 
 from conftest import falling_cubes
 from contactbench import rotations
@@ -18,7 +20,8 @@ from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges, collision_radius
 from contactbench.models.gnn.module import GNNDataModule, GNNModule
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
-from contactbench.recordings import read_recordings
+from contactbench.recordings import Split, read_recordings
+from contactbench.tracking import ResumableCSVLogger, drop_rows_from_step
 
 TINY = {"latent_size": 16, "message_passing_steps": 2}
 
@@ -205,3 +208,47 @@ def test_free_flight_acceleration_is_measured_on_train_not_read_from_meta():
     near_floor = recordings.split("train").poses.copy()
     near_floor[..., 2] = 0.06  # every body within the contact distance of the floor: no frame is free
     assert not simulator.free_of_contact(torch.as_tensor(near_floor)).any()
+
+
+def test_a_run_resumed_mid_epoch_trains_exactly_as_an_uninterrupted_one(tmp_path):
+    """Batches and training noise come from (seed, step): resuming from a mid-epoch checkpoint changes no weight."""
+    recordings = falling_cubes(n_trajectories=6, n_frames=14)
+    lowered = recordings.split("train").poses.copy()
+    lowered[..., 2] = 0.04 + 0.001 * np.arange(14)[None, :, None]
+    recordings = dataclasses.replace(recordings, splits={**recordings.splits, "train": Split(lowered, recordings.split("train").lengths)})
+    options = {"rigid": True, "velocity_history": 3, "lr": 1e-3, "lr_schedule": "cosine", "seed": 7, **TINY}
+    data = {"rigid": True, "velocity_history": 3, "batch_size": 4, "seed": 7}  # 60 windows: 15 steps an epoch
+
+    def fit(max_steps: int, resume_from: str | None = None, callbacks=()):
+        pl.seed_everything(0)
+        module = GNNModule(recordings, **options)
+        trainer = pl.Trainer(max_steps=max_steps, limit_val_batches=0, logger=False, callbacks=list(callbacks),
+                             enable_checkpointing=bool(callbacks), enable_progress_bar=False, enable_model_summary=False)
+        trainer.fit(module, datamodule=GNNDataModule(recordings, **data), ckpt_path=resume_from)
+        return module
+
+    class KilledAtStepFive(pl.Callback):  # the same run (max_steps, schedule), stopped once step 5 is checkpointed
+        def on_train_batch_end(self, trainer, *args):
+            trainer.should_stop = trainer.global_step >= 5
+
+    checkpoint = ModelCheckpoint(dirpath=tmp_path, every_n_train_steps=5, save_top_k=-1, filename="{step}")
+    fit(10, callbacks=[checkpoint, KilledAtStepFive()])
+    pl.seed_everything(123)  # a resumed process starts from another global random state
+    resumed = fit(10, resume_from=str(tmp_path / "step=5.ckpt"))
+    uninterrupted = fit(10)
+    for name, value in uninterrupted.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[name], value, atol=0, rtol=0, msg=name)
+
+
+def test_the_csv_log_keeps_its_rows_across_a_resume(tmp_path):
+    logger = ResumableCSVLogger(save_dir=tmp_path, name="csv", version="")
+    logger.log_metrics({"train/loss": 1.0}, step=1)
+    logger.log_metrics({"train/loss": 0.5}, step=2)
+    logger.save()
+    drop_rows_from_step(tmp_path, 2)  # resuming from step 2: that step is logged again
+    again = ResumableCSVLogger(save_dir=tmp_path, name="csv", version="")
+    again.log_metrics({"train/loss": 0.4, "val/rollout_pos_err": 0.3}, step=2)
+    again.save()
+    rows = list(csv.DictReader(open(tmp_path / "csv" / "metrics.csv")))
+    assert [(row["step"], row["train/loss"]) for row in rows] == [("1", "1.0"), ("2", "0.4")]
+    assert rows[1]["val/rollout_pos_err"] == "0.3"

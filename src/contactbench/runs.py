@@ -109,6 +109,7 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     resume_from = str(last) if cfg.resume and last.exists() else None
     if resume_from:
         log.info("resuming from %s", resume_from)  # folders.check has checked its signature and contents
+        tracking.drop_rows_from_step(output_dir, int(torch.load(resume_from, weights_only=True, map_location="cpu")["global_step"]))
     trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     checkpoint = Path(best_path).name if best_path else "last.ckpt"

@@ -4,9 +4,12 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import csv
+
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from pytorch_lightning.loggers import Logger
+from pytorch_lightning.loggers import CSVLogger, Logger
+from pytorch_lightning.loggers.csv_logs import ExperimentWriter
 
 log = logging.getLogger(__name__)
 
@@ -47,3 +50,40 @@ def _flatten(tree, prefix: str = "") -> dict:
         else:
             flat[name] = value
     return flat
+
+
+class KeepingExperimentWriter(ExperimentWriter):
+    """Lightning's CSV writer, except that a run resumed in its folder appends to metrics.csv instead of deleting it."""
+
+    def _check_log_dir_exists(self) -> None:
+        if self._fs.isfile(self.metrics_file_path):
+            with self._fs.open(self.metrics_file_path, "r", newline="") as file:
+                self.metrics_keys = sorted(csv.DictReader(file).fieldnames or [])
+
+
+class ResumableCSVLogger(CSVLogger):
+    """CSV files in the run folder that survive a resume (csv/metrics.csv keeps the rows logged before a kill)."""
+
+    @property
+    def experiment(self) -> ExperimentWriter:
+        if self._experiment is None:
+            self._fs.makedirs(self.root_dir, exist_ok=True)
+            self._experiment = KeepingExperimentWriter(log_dir=self.log_dir)
+        return self._experiment
+
+
+def drop_rows_from_step(output_dir: Path, step: int) -> None:
+    """Remove csv/metrics.csv rows logged at or after `step`: a resumed run logs those steps again."""
+    path = Path(output_dir) / "csv" / "metrics.csv"
+    if not path.is_file():
+        return
+    with open(path, newline="") as file:
+        reader = csv.DictReader(file)
+        fields, rows = reader.fieldnames or [], list(reader)
+    kept = [row for row in rows if not row.get("step") or int(float(row["step"])) < step]
+    partial = path.with_name(f".{path.name}.partial")
+    with open(partial, "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(kept)
+    partial.replace(path)

@@ -14,11 +14,12 @@ Normalisation statistics are computed from the train split when fitting starts a
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+from torch.utils.data import BatchSampler, DataLoader, Dataset, Sampler, SequentialSampler
 
 from contactbench.metrics import position_error, rotation_error
 from contactbench.models.base import ContactModel, make_context
@@ -41,6 +42,23 @@ def evenly_spaced(count: int, chosen: int | None) -> np.ndarray:
 def check_history_fits(context_frames: int, velocity_history: int) -> None:
     if context_frames < velocity_history + 1:
         raise ValueError(f"{velocity_history} velocities need {velocity_history + 1} context frames; the protocol gives {context_frames}")
+
+
+class StepSeededBatches(Sampler):
+    """Batches of window indices drawn uniformly (without replacement inside a batch), batch by batch from a generator
+    seeded with (seed, training step): a run resumed from any step, mid-epoch included, draws the batches an
+    uninterrupted run draws. `current_step` is read when an epoch's iteration starts."""
+
+    def __init__(self, n_windows: int, batch_size: int, seed: int, current_step: Callable[[], int]):
+        self.n_windows, self.batch_size, self.seed, self.current_step = n_windows, min(batch_size, n_windows), seed, current_step
+
+    def __len__(self) -> int:
+        return -(-self.n_windows // self.batch_size)
+
+    def __iter__(self):
+        first = self.current_step()
+        for step in range(first, first + len(self)):
+            yield np.random.default_rng([self.seed, step]).choice(self.n_windows, self.batch_size, replace=False)
 
 
 class VertexWindows(Dataset):
@@ -86,6 +104,7 @@ class GNNDataModule(pl.LightningDataModule):
         val_batch_size: int = 256,
         rigid: bool = False,
         batch_vertices: int | None = None,
+        seed: int = 0,
     ):
         super().__init__()
         check_history_fits(context_frames, velocity_history)
@@ -98,13 +117,14 @@ class GNNDataModule(pl.LightningDataModule):
         self.val_windows = val_windows
         self.val_batch_size = val_batch_size
         self.rigid = rigid
+        self.seed = seed
 
-    def _loader(self, windows: VertexWindows, sampler, batch_size: int) -> DataLoader:
+    def _loader(self, windows: VertexWindows, batches: Sampler) -> DataLoader:
         if len(windows) == 0:
             raise ValueError(f"no trajectory of dataset {self.dataset.name!r} has the {self.window_frames} frames one training window needs")
         return DataLoader(
             windows,
-            sampler=BatchSampler(sampler, batch_size, drop_last=False),
+            sampler=batches,
             batch_size=None,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
@@ -112,11 +132,14 @@ class GNNDataModule(pl.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         windows = VertexWindows(self.dataset.split("train"), self.scene, self.window_frames, as_poses=self.rigid)
-        return self._loader(windows, RandomSampler(windows), self.batch_size)
+        return self._loader(windows, StepSeededBatches(len(windows), self.batch_size, self.seed, self._current_step))
+
+    def _current_step(self) -> int:
+        return self.trainer.global_step if self.trainer is not None else 0
 
     def val_dataloader(self) -> DataLoader:
         windows = VertexWindows(self.dataset.split("val"), self.scene, self.window_frames, self.val_windows, as_poses=self.rigid)
-        return self._loader(windows, SequentialSampler(windows), self.val_batch_size)
+        return self._loader(windows, BatchSampler(SequentialSampler(windows), self.val_batch_size, drop_last=False))
 
 
 class GNNModule(pl.LightningModule):
@@ -139,6 +162,7 @@ class GNNModule(pl.LightningModule):
         rigid: bool = False,
         contact_distance_fraction: float = 0.25,
         lr_schedule: str = "constant",
+        seed: int = 0,
     ):
         super().__init__()
         self.save_hyperparameters(ignore=["dataset"])
@@ -176,7 +200,9 @@ class GNNModule(pl.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
 
     def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
-        loss = self.simulator.loss(batch, add_noise=True)
+        # noise drawn from (seed, step), like the batches: a resumed run trains exactly as an uninterrupted one
+        generator = torch.Generator(device=batch.device).manual_seed(int(np.random.SeedSequence([self.hparams.seed, self.global_step]).generate_state(1)[0]))
+        loss = self.simulator.loss(batch, add_noise=True, generator=generator)
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch))
         return loss
 

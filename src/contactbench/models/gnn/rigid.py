@@ -204,24 +204,24 @@ class RigidLearnedSimulator(LearnedSimulator):
         next_velocity, next_spin = self.velocities(current, following)
         return (next_velocity - velocity) / self.dt, (next_spin - spin) / self.dt
 
-    def with_noise(self, inputs: torch.Tensor, following: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def with_noise(self, inputs: torch.Tensor, following: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Random-walk noise on input positions and orientations; the target frame moves with the last input's."""
-        shift = random_walk_noise(inputs[..., :3], self.noise_std)
-        turn = random_walk_noise(torch.zeros_like(inputs[..., :3]), 1.0) * (self.noise_std / self.half_widths)[:, None]
+        shift = random_walk_noise(inputs[..., :3], self.noise_std, generator)
+        turn = random_walk_noise(torch.zeros_like(inputs[..., :3]), 1.0, generator) * (self.noise_std / self.half_widths)[:, None]
         inputs = torch.cat([inputs[..., :3] + shift, quaternions.multiply(quaternions.from_rotation_vector(turn), inputs[..., 3:])], dim=-1)
         following = torch.cat(
             [following[..., :3] + shift[:, -1], quaternions.multiply(quaternions.from_rotation_vector(turn[:, -1]), following[..., 3:])], dim=-1
         )
         return inputs, following
 
-    def loss(self, window: torch.Tensor, add_noise: bool) -> torch.Tensor:
+    def loss(self, window: torch.Tensor, add_noise: bool, generator: torch.Generator | None = None) -> torch.Tensor:
         """MSE of the implied vertex accelerations a + α × r_i, normalised per axis, for pose windows [B, H + 2, K, 7].
 
         """
         window = window.double()
         inputs, following = window[:, :-1], window[:, -1]
         if add_noise and self.noise_std > 0:
-            inputs, following = self.with_noise(inputs, following)
+            inputs, following = self.with_noise(inputs, following, generator)
         linear, angular = self.accelerations(inputs)
         target_linear, target_angular = self.target_accelerations(inputs[:, -2], inputs[:, -1], following)
         offsets = self.vertices(inputs[:, -1]) - inputs[:, -1, self.node_body, :3]

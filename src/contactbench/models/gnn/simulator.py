@@ -41,10 +41,11 @@ MIN_STD = 1e-6
 STATISTICS_CHUNK = 64
 
 
-def random_walk_noise(positions: torch.Tensor, std: float) -> torch.Tensor:
+def random_walk_noise(positions: torch.Tensor, std: float, generator: torch.Generator | None = None) -> torch.Tensor:
     """Noise for positions [B, H + 1, n, 3]: velocity noise is a random walk reaching `std` at the last step."""
     steps = positions.shape[1] - 1
-    velocity_noise = torch.cumsum(torch.randn_like(positions[:, 1:]) * (std / steps**0.5), dim=1)
+    draws = torch.randn(positions[:, 1:].shape, generator=generator, dtype=positions.dtype, device=positions.device)
+    velocity_noise = torch.cumsum(draws * (std / steps**0.5), dim=1)
     return torch.cat([torch.zeros_like(positions[:, :1]), torch.cumsum(velocity_noise, dim=1)], dim=1)
 
 
@@ -165,12 +166,12 @@ class LearnedSimulator(nn.Module):
         acceleration = (window[:, -1] - 2 * window[:, -2] + window[:, -3]) / self.dt**2
         return (acceleration - self.acceleration_mean) / self.acceleration_std
 
-    def loss(self, window: torch.Tensor, add_noise: bool) -> torch.Tensor:
+    def loss(self, window: torch.Tensor, add_noise: bool, generator: torch.Generator | None = None) -> torch.Tensor:
         """MSE on normalised accelerations for windows [B, H + 2, n, 3] (inputs, then the next frame)."""
         inputs = window[:, :-1]
         next_positions = window[:, -1]
         if add_noise and self.noise_std > 0:
-            noise = random_walk_noise(inputs, self.noise_std)
+            noise = random_walk_noise(inputs, self.noise_std, generator)
             inputs = inputs + noise
             next_positions = next_positions + noise[:, -1]
         targets = self.acceleration_targets(torch.cat([inputs[:, -2:], next_positions[:, None]], dim=1))
