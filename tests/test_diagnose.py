@@ -83,3 +83,17 @@ def test_only_a_smoke_budget_is_called_inconclusive():
     smoke = {**document, "budget_name": "smoke", "conclusive": False}
     assert summary_sentence(smoke).startswith("At budget=smoke (not conclusive): Missing: air_drag")
     assert "NOT conclusive" in budget_sentence(smoke)
+
+
+def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_gravity_scale(tmp_path):
+    # Strength 2 (0.91 g): at strength 1 (0.95 g) the effect closes just about the 5% margin on these few tosses,
+    # whose short-horizon loss lives almost all in impacts.
+    weak = generate_dataset(CUBE, tmp_path / "weak", split_sizes=SIZES, workers=1, progress=False, effects=("gravity_scale",), effect_strength=2.0)
+    verdict, document = diagnose(weak, tmp_path / "weak_out", tmp_path, SMALL)
+    falling = document["free_flight"]
+    assert falling["differs"] and falling["confirmed"] and falling["scale"] == pytest.approx(1 / 1.1, abs=3e-3)
+    assert verdict == "effect" and [e["name"] for e in document["effects"]] == ["gravity_scale"]
+    assert document["effects"][0]["parameters"]["gravity_scale"] == pytest.approx(1 / 1.1, abs=0.01)
+    # (No held-out assertion: 20 test tosses of full rollouts through engine-specific impacts are too few to show it.)
+    report = (tmp_path / "weak_out" / "report.md").read_text()
+    assert "## First, model-free: free flight" in report and "confirmed on test" in report

@@ -140,3 +140,33 @@ def test_wind_and_air_drag_together_do_not_depend_on_their_order():
     assert both == ConcealedEffects.named(["wind", "air_drag"], 2.0)
     assert both.fluid_density == 120.0 and both.wind == (2.0, 1.0, 0.0)
     assert ConcealedEffects.named(["wind"], 2.0).fluid_density == 60.0
+
+
+def test_gravity_scale_makes_pybullet_fall_slower_than_meta_says_and_mujoco_models_it():
+    effects = ConcealedEffects.named(["gravity_scale"], 1.0)
+    assert effects.gravity_scale == pytest.approx(1 / 1.05)
+    assert effects.truth(["gravity_scale"]) == [{"name": "gravity_scale", "parameters": {"gravity_scale": effects.gravity_scale}}]
+    throw = (1.5, -0.8, 0.5, 6.0, -4.0, 9.0)
+    poses, _ = fly(effects, velocity=throw, frames=30)
+    acceleration = np.diff(poses[:, 0, :3], 2, axis=0) / SETTINGS.dt**2
+    np.testing.assert_allclose(acceleration, np.broadcast_to(np.array(SETTINGS.gravity) / 1.05, acceleration.shape), atol=1e-6)
+    # MuJoCo's model of it: the scene's gravity times the scale; the same path as PyBullet's, not the plain one.
+    rollouts = MujocoRollouts(_dataset_stub(), nthread=1)
+    scaled = ContactParameters((0.5,), 0.0, None, None, effects=SceneEffects(gravity_scale=1 / 1.05))
+    plain = ContactParameters((0.5,), 0.0, None, None)
+    result = rollouts.simulate([scaled, plain], poses[None, 0], np.array([[throw]]), 29).poses[:, 0, :, 0]
+    np.testing.assert_allclose(result[0, :, :3], poses[1:, 0, :3], atol=1e-6)
+    assert np.abs(result[1, -1, :3] - poses[-1, 0, :3]).max() > 1e-3
+    with pytest.raises(ContactbenchError, match="gravity scales"):
+        SceneEffects(gravity_scale=0.0)
+
+
+def test_the_library_models_gravity_scale_as_mujocos_gravity():
+    from contactbench.diagnosis.library import Hypothesis, library
+
+    effect = library(WIDTH)["gravity_scale"]
+    hypothesis = Hypothesis(1).with_effect(effect)
+    values = hypothesis.start()
+    assert hypothesis.contact_parameters(values).effects.gravity_scale == 1.0  # starts switched off
+    values[-1] = 0.95
+    assert hypothesis.contact_parameters(values).effects.gravity_scale == pytest.approx(0.95)

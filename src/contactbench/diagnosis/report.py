@@ -71,6 +71,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "# Diagnosis", "", summary_sentence(document), "",
         budget_sentence(document), "",
         f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).", "",
+        "## First, model-free: free flight", "", document["free_flight"]["sentence"], "",
+        *_free_flight_table(document["free_flight"]),
         "## Held-out (test, full rollouts from the context frames)", "",
         "| model | position error (widths) | rotation error (rad) |", "|---|---|---|",
         f"| base | {held['base']['pos_err']:.4f} | {held['base']['rot_err_rad']:.4f} |",
@@ -92,6 +94,16 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         lines.append(f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | {located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |")
     lines += ["", *[f"![{path.stem}](figures/{path.name})" for path in figures], ""]
     return "\n".join(lines)
+
+
+def _free_flight_table(found: dict) -> list[str]:
+    lines = ["| split | tosses | free-flight frames | acceleration x, y, z (m/s²) | along gravity, 95% CI |", "|---|---|---|---|---|"]
+    for name, part in found["splits"].items():
+        if part.get("n_frames"):
+            ci = part["along_gravity_ci95"]
+            lines.append(f"| {name} | {part['n_trajectories']} | {part['n_frames']} | {', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
+                         f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] |")
+    return lines + [""]
 
 
 def _phase_components(located: dict, path: Path) -> Path:

@@ -69,7 +69,7 @@ class BulletScene:
             deterministicOverlappingPairs=1,
             physicsClientId=client,
         )
-        pybullet.setGravity(*settings.gravity, physicsClientId=client)
+        pybullet.setGravity(*(np.asarray(settings.gravity) * self.effects.gravity_scale).tolist(), physicsClientId=client)
         floor_shape = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
         floor = pybullet.createMultiBody(
             0.0,

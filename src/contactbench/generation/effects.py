@@ -17,6 +17,7 @@ EFFECT_NAMES = (
     "inertia_mismatch",
     "floor_offset",
     "floor_tilt",
+    "gravity_scale",
 )
 # Strength 1 of each effect. The tosses are short and slow (about 1 m/s, 0.15 s of flight, then sliding), so
 # the fluid is dense: at 60 kg/m^3 drag decelerates a sliding cube by about 1 m/s^2 against friction's ~5.
@@ -38,6 +39,9 @@ class ConcealedEffects:
     inertia_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # true inertia / the mesh's, along the mesh axes
     floor_offset: float = 0.0  # m, true floor height minus the recorded floor_z
     floor_tilt: tuple[float, float] = (0.0, 0.0)  # rad, the floor's rotation about world x, then about world y
+    # PyBullet's gravity / the recorded meta.gravity: what a tracker whose time base or length scale is off shows
+    # (the real ContactNets cube falls at 0.978 g in free flight).
+    gravity_scale: float = 1.0
 
     def __post_init__(self):
         freeze_numbers(self, vectors=("wind", "floor_friction_scale", "com_offset", "inertia_scale", "floor_tilt"))
@@ -72,6 +76,8 @@ class ConcealedEffects:
                 settings["floor_offset"] = 0.008 * s
             elif name == "floor_tilt":
                 settings["floor_tilt"] = (0.025 * s, -0.012 * s)
+            elif name == "gravity_scale":  # weaker, as the real cube's; 1 / (1 + 0.05 s) stays positive at any strength
+                settings["gravity_scale"] = 1.0 / (1.0 + 0.05 * s)
         return cls(**settings)
 
     def truth(self, names) -> list[dict]:
@@ -86,6 +92,7 @@ class ConcealedEffects:
             "inertia_mismatch": dict(zip(("inertia_scale_x", "inertia_scale_y", "inertia_scale_z"), self.inertia_scale)),
             "floor_offset": {"floor_offset": self.floor_offset},
             "floor_tilt": {"floor_tilt_x": self.floor_tilt[0], "floor_tilt_y": self.floor_tilt[1]},
+            "gravity_scale": {"gravity_scale": self.gravity_scale},
         }
         return [{"name": name, "parameters": values[name]} for name in names]
 

@@ -53,11 +53,14 @@ class SceneEffects:
     inertia_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # multiplies every body's inertia along the mesh axes
     floor_offset: float = 0.0  # m, the floor's height above the recordings' floor_z
     floor_tilt: tuple[float, float] = (0.0, 0.0)  # rad, the floor's rotation about world x, then about world y
+    # The simulated gravity / the recordings' meta.gravity: with the recorded velocities as initial states this is
+    # exactly a tracker time base off by sqrt(gravity_scale) (contact stiffness and damping are fitted anyway).
+    gravity_scale: float = 1.0
 
     def __post_init__(self):
         freeze_numbers(self, vectors=("wind", "com_offset", "inertia_scale", "floor_tilt"))
-        if not (self.fluid_density >= 0 and self.friction_anisotropy > 0 and min(self.inertia_scale) > 0):
-            raise ContactbenchError(f"fluid density must be >= 0, friction anisotropy and inertia scales > 0, got {self}")
+        if not (self.fluid_density >= 0 and self.friction_anisotropy > 0 and min(self.inertia_scale) > 0 and self.gravity_scale > 0):
+            raise ContactbenchError(f"fluid density must be >= 0, friction anisotropy, inertia and gravity scales > 0, got {self}")
 
 
 NO_EFFECTS = SceneEffects()
@@ -150,7 +153,7 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
         [
             f"<mujoco model={quoteattr(dataset.name)}>",
             '<compiler angle="radian" inertiafromgeom="false"/>',
-            f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(dataset.gravity)}" integrator="Euler"{fluid}/>',
+            f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(np.asarray(dataset.gravity) * effects.gravity_scale)}" integrator="Euler"{fluid}/>',
             "<asset>", *assets, "</asset>",
             "<worldbody>",
             f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z + effects.floor_offset!r}" '

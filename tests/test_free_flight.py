@@ -1,0 +1,39 @@
+"""diagnosis.free_flight: the model-free check that bodies in free flight fall at meta.gravity."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from contactbench.diagnosis import free_flight
+from contactbench.generation.generator import generate_dataset
+from contactbench.generation.scenes import SceneSpec
+from contactbench.recordings import read_recordings
+
+CUBE = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)
+SIZES = {"train": 10, "val": 10, "test": 10}
+
+
+def test_a_concealed_weaker_gravity_is_measured_in_free_flight_and_a_null_dataset_is_consistent(tmp_path):
+    rng = np.random.default_rng(0)
+    null = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False))
+    weak = read_recordings(generate_dataset(CUBE, tmp_path / "weak", split_sizes=SIZES, workers=1, progress=False, effects=("gravity_scale",)))
+    assert weak.meta["gravity"] == null.meta["gravity"]  # concealed: meta keeps 9.8
+    found = free_flight.check(weak.for_models(list(weak.splits)), rng, draws=200)
+    assert found["scale"] == pytest.approx(1 / 1.05, abs=2e-3)
+    assert found["differs"] and found["confirmed"]
+    assert found["frame_interval_factor"] == pytest.approx(np.sqrt(1 / 1.05), abs=1e-3)
+    for part in found["splits"].values():
+        assert part["n_frames"] > 50 and abs(part["acceleration"][0]) < 0.05 and abs(part["acceleration"][1]) < 0.05
+        assert part["along_gravity_ci95"][1] < 9.8
+    assert "differs on val, confirmed on test" in found["sentence"]
+    plain = free_flight.check(null.for_models(list(null.splits)), rng, draws=200)
+    assert plain["scale"] == pytest.approx(1.0, abs=2e-3) and not plain["differs"] and not plain["confirmed"]
+    assert "consistent with meta" in plain["sentence"]
+
+
+def test_free_frames_leave_out_contact_and_the_ends(tmp_path):
+    data = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes={"train": 4}, workers=1, progress=False))
+    split = data.split("train")
+    free = free_flight.free_frames(data, split)
+    assert not free[:, 0].any() and not free[:, -1].any()
+    assert free.any() and not (free & ~(split.poses[..., 2] > data.widths()[0] * free_flight.CLEARANCE)).any()
