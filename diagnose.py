@@ -1,4 +1,5 @@
 """Locate, name, model and prove the physics a simulator misses: python diagnose.py recordings=PATH."""
+
 from pathlib import Path
 
 import hydra

@@ -1,4 +1,5 @@
 """Score a model on a split and write metrics.json: python evaluate.py model=mujoco_default dataset=contactnets_cube."""
+
 from pathlib import Path
 
 import hydra

@@ -1,4 +1,5 @@
 """Generate benchmark datasets with PyBullet: python generate.py dataset=multicubes bodies=3."""
+
 from pathlib import Path
 
 import hydra

@@ -9,6 +9,7 @@ without the effect). Prints the confusion matrix and a table; writes proof.json 
     python benchmarks/diagnosis_proof.py                 # ~25 cases, about 30 min on 2 cores
     python benchmarks/diagnosis_proof.py --effects floor_tilt --strengths 2    # a subset
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,12 +39,18 @@ def cases(effects: list[str], strengths: list[float]) -> list[dict]:
         {"shape": "dodecahedron", "effect": None, "strength": 0.0, "seed": 0},
     ]
     listed += [{"shape": "cube", "effect": e, "strength": s, "seed": 0} for e in effects for s in strengths]
-    listed += [{"shape": "dodecahedron", "effect": e, "strength": 2.0, "seed": 0} for e in ("air_drag", "floor_tilt") if e in effects]
+    listed += [
+        {"shape": "dodecahedron", "effect": e, "strength": 2.0, "seed": 0}
+        for e in ("air_drag", "floor_tilt")
+        if e in effects
+    ]
     return listed
 
 
 def case_name(case: dict) -> str:
-    return f"{case['shape']}_seed{case['seed']}_" + (f"{case['effect']}_x{case['strength']:g}" if case["effect"] else "null")
+    return f"{case['shape']}_seed{case['seed']}_" + (
+        f"{case['effect']}_x{case['strength']:g}" if case["effect"] else "null"
+    )
 
 
 def blind_copy(case: dict, index: int, data_dir: Path) -> tuple[Path, list[dict]]:
@@ -51,8 +58,15 @@ def blind_copy(case: dict, index: int, data_dir: Path) -> tuple[Path, list[dict]
     spec = CUBE if case["shape"] == "cube" else POLYHEDRON
     source = data_dir / "generated" / case_name(case)
     if not (source / "meta.json").exists():
-        generate_dataset(spec, source, variant=case_name(case), seed=case["seed"], effects=(case["effect"],) if case["effect"] else (),
-                         effect_strength=case["strength"] or 1.0, progress=False)
+        generate_dataset(
+            spec,
+            source,
+            variant=case_name(case),
+            seed=case["seed"],
+            effects=(case["effect"],) if case["effect"] else (),
+            effect_strength=case["strength"] or 1.0,
+            progress=False,
+        )
     full = read_recordings(source)
     hidden = full.meta["generator"]["effects"]
     blind = full.for_models(list(full.splits))
@@ -91,19 +105,33 @@ def main() -> None:
         reference = null_base.get((case["shape"], case["seed"]))
         excess = base - reference if reference is not None else float("nan")
         row = {
-            **case, "name": case_name(case), "blind": path.name, "named": named, "verdict": document["verdict"],
+            **case,
+            "name": case_name(case),
+            "blind": path.name,
+            "named": named,
+            "verdict": document["verdict"],
             "correct": named == [case["effect"]] if case["effect"] else not named,
             "hidden": hidden[0]["parameters"] if hidden else {},
             "fitted": document["effects"][0]["parameters"] if document["effects"] else {},
-            "base_pos_err": base, "augmented_pos_err": augmented, "null_base_pos_err": reference,
+            "base_pos_err": base,
+            "augmented_pos_err": augmented,
+            "null_base_pos_err": reference,
             "excess_closed": (base - augmented) / excess if case["effect"] and excess > 0 else None,
-            "heldout_improvement": document["heldout"]["improvement"], "heldout_ci95": document["heldout"]["ci95"],
-            "best_candidate": max((c for c in document["candidates"] if c.get("val_improvement") is not None), key=lambda c: c["val_improvement"], default=None),
+            "heldout_improvement": document["heldout"]["improvement"],
+            "heldout_ci95": document["heldout"]["ci95"],
+            "best_candidate": max(
+                (c for c in document["candidates"] if c.get("val_improvement") is not None),
+                key=lambda c: c["val_improvement"],
+                default=None,
+            ),
             "seconds": round(time.perf_counter() - case_started, 1),
         }
         rows.append(row)
-        print(f"{row['name']:42s} -> {named or 'none'} {'OK' if row['correct'] else 'WRONG'}  base {base:.4f} aug {augmented:.4f} "
-              f"null {reference if reference is None else round(reference, 4)} closed {row['excess_closed']}  ({row['seconds']} s)", flush=True)
+        print(
+            f"{row['name']:42s} -> {named or 'none'} {'OK' if row['correct'] else 'WRONG'}  base {base:.4f} aug {augmented:.4f} "
+            f"null {reference if reference is None else round(reference, 4)} closed {row['excess_closed']}  ({row['seconds']} s)",
+            flush=True,
+        )
     summary = summarise(rows, time.perf_counter() - started)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic.write_json(args.out / "proof.json", {"summary": summary, "cases": rows})
@@ -125,14 +153,27 @@ def summarise(rows: list[dict], seconds: float) -> dict:
     named_rate = float(np.mean([r["correct"] for r in effect_rows])) if effect_rows else float("nan")
     false_alarms = sum(bool(r["named"]) for r in null_rows)
     lines = [
-        f"# Diagnosis proof ({len(rows)} blind datasets, {seconds / 60:.1f} min)", "",
+        f"# Diagnosis proof ({len(rows)} blind datasets, {seconds / 60:.1f} min)",
+        "",
         f"- named correctly: {named_rate:.0%} of {len(effect_rows)} effect datasets (goal >= 90%)",
         f"- false alarms: {false_alarms} of {len(null_rows)} null datasets (goal 0)",
-        f"- excess held-out error closed: median {np.median(closed):.0%}, mean {np.mean(closed):.0%} over {len(closed)} (goal >= 50%)" if closed else "- excess closed: n/a",
-        "", "## Confusion matrix (rows: hidden, columns: named)", "",
-        "| hidden \\ named | " + " | ".join(predicted_labels) + " |", "|---|" + "---|" * len(predicted_labels),
-        *[f"| {truth} | " + " | ".join(str(matrix[truth][p]) or "" for p in predicted_labels) + " |" for truth in labels],
-        "", "## Cases", "", "| dataset | named | base | augmented | base without effect | excess closed | hidden | fitted | s |", "|---|---|---|---|---|---|---|---|---|",
+        f"- excess held-out error closed: median {np.median(closed):.0%}, mean {np.mean(closed):.0%} over {len(closed)} (goal >= 50%)"
+        if closed
+        else "- excess closed: n/a",
+        "",
+        "## Confusion matrix (rows: hidden, columns: named)",
+        "",
+        "| hidden \\ named | " + " | ".join(predicted_labels) + " |",
+        "|---|" + "---|" * len(predicted_labels),
+        *[
+            f"| {truth} | " + " | ".join(str(matrix[truth][p]) or "" for p in predicted_labels) + " |"
+            for truth in labels
+        ],
+        "",
+        "## Cases",
+        "",
+        "| dataset | named | base | augmented | base without effect | excess closed | hidden | fitted | s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         closed_text = "–" if r["excess_closed"] is None else f"{r['excess_closed']:.0%}"
@@ -141,8 +182,16 @@ def summarise(rows: list[dict], seconds: float) -> dict:
             f"{'–' if r['null_base_pos_err'] is None else format(r['null_base_pos_err'], '.4f')} | {closed_text} | "
             f"{_short(r['hidden'])} | {_short(r['fitted'])} | {r['seconds']} |"
         )
-    return {"named_correctly": named_rate, "false_alarms": false_alarms, "nulls": len(null_rows), "excess_closed_median": float(np.median(closed)) if closed else None,
-            "excess_closed_mean": float(np.mean(closed)) if closed else None, "confusion": matrix, "seconds": seconds, "markdown": "\n".join(lines) + "\n"}
+    return {
+        "named_correctly": named_rate,
+        "false_alarms": false_alarms,
+        "nulls": len(null_rows),
+        "excess_closed_median": float(np.median(closed)) if closed else None,
+        "excess_closed_mean": float(np.mean(closed)) if closed else None,
+        "confusion": matrix,
+        "seconds": seconds,
+        "markdown": "\n".join(lines) + "\n",
+    }
 
 
 def _short(values: dict) -> str:

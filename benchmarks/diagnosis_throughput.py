@@ -1,4 +1,5 @@
 """Diagnosis objective throughput: robust short-horizon losses of candidate batches vs bare mujoco.rollout, same work."""
+
 from __future__ import annotations
 
 import argparse
@@ -27,7 +28,9 @@ def main() -> None:
 
     dataset = read_recordings(args.dataset, ["train"]).for_models(["train"])
     train = dataset.split("train")
-    segments = cut_segments(dataset, train.select(range(min(args.trajectories, train.n_trajectories))), args.segment_frames)
+    segments = cut_segments(
+        dataset, train.select(range(min(args.trajectories, train.n_trajectories))), args.segment_frames
+    )
     fit = ResidualFit(SegmentSimulator(dataset, segments), scale=0.05)
     # A hypothesis with an effect that changes the compiled model per candidate (the costly case: no cache hits).
     hypothesis = Hypothesis(dataset.n_bodies, (library(float(dataset.widths().max()))["floor_tilt"],))
@@ -42,17 +45,31 @@ def main() -> None:
 
     rollouts = fit.simulator.rollouts
     initial = rollouts.initial_states(segments.poses0, segments.velocities0)
-    prepared = [[rollouts.model(hypothesis.contact_parameters(v)) for v in batch for _ in range(segments.count)] for batch in batches]
+    prepared = [
+        [rollouts.model(hypothesis.contact_parameters(v)) for v in batch for _ in range(segments.count)]
+        for batch in batches
+    ]
     states = np.empty((args.batch * segments.count, args.segment_frames, rollouts.nstate))
     started = time.perf_counter()
     for models in prepared:
-        mujoco.rollout.rollout(models, rollouts._data, np.tile(initial, (args.batch, 1)), nstep=args.segment_frames, state=states, persistent_pool=True)
+        mujoco.rollout.rollout(
+            models,
+            rollouts._data,
+            np.tile(initial, (args.batch, 1)),
+            nstep=args.segment_frames,
+            state=states,
+            persistent_pool=True,
+        )
     bare_seconds = time.perf_counter() - started
 
     steps = args.repeats * args.batch * segments.count * args.segment_frames
-    print(f"{segments.count} segments x {args.segment_frames} frames, {args.batch} candidates x {args.repeats} batches ({steps} steps)")
-    print(f"objective (build models + rollout + residuals + robust loss): {steps / objective_seconds:,.0f} steps/s, "
-          f"{args.batch * args.repeats / objective_seconds:.1f} candidates/s")
+    print(
+        f"{segments.count} segments x {args.segment_frames} frames, {args.batch} candidates x {args.repeats} batches ({steps} steps)"
+    )
+    print(
+        f"objective (build models + rollout + residuals + robust loss): {steps / objective_seconds:,.0f} steps/s, "
+        f"{args.batch * args.repeats / objective_seconds:.1f} candidates/s"
+    )
     print(f"bare mujoco.rollout (models prebuilt): {steps / bare_seconds:,.0f} steps/s")
     print(f"ratio objective / bare = {bare_seconds / objective_seconds:.2f}")
 

@@ -1,19 +1,27 @@
 """Generator throughput: generate_dataset against bare PyBullet loops over the same scenes, with a cost breakdown."""
+
 from __future__ import annotations
 
 import argparse
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pybullet
 
 from contactbench.generation.bullet import BulletScene
-from contactbench.generation.generator import SPLIT_SIZES, derive_seed, generate_dataset, toss_chunks, toss_rng, worker_context
+from contactbench.generation.generator import (
+    SPLIT_SIZES,
+    derive_seed,
+    generate_dataset,
+    toss_chunks,
+    toss_rng,
+    worker_context,
+)
 from contactbench.generation.scenes import BulletSettings, SceneSpec, sample_initial_state
 from contactbench.generation.solids import solid
 from contactbench.meshes import Mesh
@@ -91,7 +99,9 @@ def pool_seconds(loop: Loop, spec: SceneSpec, states: list[State], workers: int)
             for chunk in chunks:
                 loop(scene, chunk)
     else:
-        with ProcessPoolExecutor(workers, mp_context=worker_context(), initializer=_open_worker_scene, initargs=(mesh, spec)) as pool:
+        with ProcessPoolExecutor(
+            workers, mp_context=worker_context(), initializer=_open_worker_scene, initargs=(mesh, spec)
+        ) as pool:
             for future in as_completed([pool.submit(_run_in_worker, loop, chunk) for chunk in chunks]):
                 future.result()
     return time.perf_counter() - start
@@ -110,10 +120,14 @@ def _split_sizes(tosses: int) -> dict[str, int]:
 
 
 def _generate(spec: SceneSpec, tosses: int, workers: int, seed: int, folder: Path) -> Path:
-    return generate_dataset(spec, folder / spec.name, split_sizes=_split_sizes(tosses), seed=seed, workers=workers, progress=False)
+    return generate_dataset(
+        spec, folder / spec.name, split_sizes=_split_sizes(tosses), seed=seed, workers=workers, progress=False
+    )
 
 
-def parallel_seconds(spec: SceneSpec, tosses: int, workers: int, seed: int, folder: Path, repeat: int) -> dict[str, float]:
+def parallel_seconds(
+    spec: SceneSpec, tosses: int, workers: int, seed: int, folder: Path, repeat: int
+) -> dict[str, float]:
     """Wall seconds of generate_dataset and of the two reference loops, one run each, in an order that rotates
     with `repeat` so that a change in the machine's load does not always fall on the same one."""
     states = initial_states(spec, tosses, seed)
@@ -137,9 +151,12 @@ def in_process_milliseconds(spec: SceneSpec, tosses: int, seed: int) -> dict[str
         runs = {
             "stepping": lambda: step_only(scene, states),
             "stepping + reads": lambda: step_and_read(scene, states),
-            "BulletScene.simulate": lambda: [scene.simulate(poses, velocities, SETTINGS.frames) for poses, velocities in states],
+            "BulletScene.simulate": lambda: [
+                scene.simulate(poses, velocities, SETTINGS.frames) for poses, velocities in states
+            ],
             "+ sampling the state": lambda: [
-                scene.simulate(*sample_initial_state(spec, mesh, toss_rng(derived, toss)), SETTINGS.frames) for toss in range(tosses)
+                scene.simulate(*sample_initial_state(spec, mesh, toss_rng(derived, toss)), SETTINGS.frames)
+                for toss in range(tosses)
             ],
         }
         return {name: 1e3 * _cpu_timed(run) / tosses for name, run in runs.items()}
@@ -167,7 +184,9 @@ def _medians(rows: list[dict[str, float]]) -> dict[str, float]:
     return {name: statistics.median(row[name] for row in rows) for name in rows[0]}
 
 
-def report(spec: SceneSpec, tosses: int, parallel: list[dict[str, float]], in_process: list[dict[str, float]], writing: float) -> None:
+def report(
+    spec: SceneSpec, tosses: int, parallel: list[dict[str, float]], in_process: list[dict[str, float]], writing: float
+) -> None:
     seconds = _medians(parallel)
     # Each run's ratio against the reference loop run right beside it, then the median over the repeats.
     goal = [row["stepping"] / row["generator"] for row in parallel]
@@ -196,7 +215,12 @@ def report(spec: SceneSpec, tosses: int, parallel: list[dict[str, float]], in_pr
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--tosses", type=int, default=sum(SPLIT_SIZES.values()), help="tosses per measured variant (default: a whole variant)")
+    parser.add_argument(
+        "--tosses",
+        type=int,
+        default=sum(SPLIT_SIZES.values()),
+        help="tosses per measured variant (default: a whole variant)",
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeats", type=int, default=5, help="runs of everything, interleaved; medians are reported")
@@ -212,7 +236,11 @@ def main() -> None:
     in_process_tosses = min(args.tosses, 100)
     with tempfile.TemporaryDirectory() as folder:
         # Start the worker machinery once, as a run over many variants would: the first pool pays it alone.
-        warm_up = _timed(lambda: generate_dataset(CUBE_SPEC, Path(folder) / "warm_up", split_sizes=_split_sizes(3), workers=args.workers, progress=False))
+        warm_up = _timed(
+            lambda: generate_dataset(
+                CUBE_SPEC, Path(folder) / "warm_up", split_sizes=_split_sizes(3), workers=args.workers, progress=False
+            )
+        )
         print(f"  worker start-up, first variant of a run only: {warm_up:.2f} s")
         generator_seconds = {}
         for spec in (CUBE_SPEC, MULTICUBES_SPEC):
@@ -228,7 +256,9 @@ def main() -> None:
     per_body = (generator_seconds[5] - generator_seconds[1]) / 4
     multicubes = sum(generator_seconds[1] + per_body * (bodies - 1) for bodies in MULTICUBES_BODY_COUNTS)
     estimate = (SINGLE_BODY_VARIANTS * generator_seconds[1] + multicubes) * sum(SPLIT_SIZES.values()) / args.tosses
-    print(f"  estimate for all 22 variants of {sum(SPLIT_SIZES.values())} tosses: {estimate:.0f} s ({estimate / 60:.1f} min)")
+    print(
+        f"  estimate for all 22 variants of {sum(SPLIT_SIZES.values())} tosses: {estimate:.0f} s ({estimate / 60:.1f} min)"
+    )
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ curves.csv and learning_curves.png beside the runs. Val only: the test split is 
 already holds a finished run (fitted.json) is read, not trained again: link a matrix run there to reuse it.
     python benchmarks/gnn_learning_curve.py [--out outputs/benchmarks/gnn_learning_curve] [--budget quick]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,7 +29,10 @@ def curve(run_dir: Path) -> list[tuple[float, float, float]]:
     """(training seconds, val rollout position error, val rollout rotation error) at every validation of a run."""
     with open(run_dir / "csv" / "metrics.csv", newline="") as handle:
         rows = [row for row in csv.DictReader(handle) if row.get("val/rollout_pos_err") and row.get("train/seconds")]
-    return [(float(row["train/seconds"]), float(row["val/rollout_pos_err"]), float(row["val/rollout_rot_err"])) for row in rows]
+    return [
+        (float(row["train/seconds"]), float(row["val/rollout_pos_err"]), float(row["val/rollout_rot_err"]))
+        for row in rows
+    ]
 
 
 def main() -> None:
@@ -41,7 +45,10 @@ def main() -> None:
         for model in MODELS:
             run_dir = args.out / f"{model}_{variant}"
             with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-                cfg = compose(config_name="train", overrides=[f"model={model}", f"variant={variant}", f"budget={args.budget}", "resume=false"])
+                cfg = compose(
+                    config_name="train",
+                    overrides=[f"model={model}", f"variant={variant}", f"budget={args.budget}", "resume=false"],
+                )
             if model == "gnn_paper":  # the same steps and validations as gnn: the curves then span similar times
                 cfg.budget.gnn_paper.max_steps = cfg.budget.gnn.max_steps
                 cfg.budget.gnn_paper.val_check_interval = cfg.budget.gnn.val_check_interval
@@ -53,8 +60,18 @@ def main() -> None:
                 val_pos_err = runs.train(cfg, run_dir)
             points = curve(run_dir)
             curves[(model, cfg.dataset.name)] = points
-            table.append({"model": model, "variant": variant, "wall_s": round(time.perf_counter() - started, 1), "val_pos_err": round(val_pos_err, 4)})
-            print(f"{model:10s} {variant:18s} wall {table[-1]['wall_s']:7.1f} s  val pos_err {val_pos_err:.4f}  curve {points}", flush=True)
+            table.append(
+                {
+                    "model": model,
+                    "variant": variant,
+                    "wall_s": round(time.perf_counter() - started, 1),
+                    "val_pos_err": round(val_pos_err, 4),
+                }
+            )
+            print(
+                f"{model:10s} {variant:18s} wall {table[-1]['wall_s']:7.1f} s  val pos_err {val_pos_err:.4f}  curve {points}",
+                flush=True,
+            )
     with open(args.out / "curves.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["model", "dataset", "train_seconds", "val_rollout_pos_err", "val_rollout_rot_err"])

@@ -10,6 +10,7 @@ edges of a 3-body scene; it is for timing only (the motion is not physical where
     python benchmarks/gnn_speed.py --latent-size 64 --message-passing-steps 5 --threads 1
     python benchmarks/gnn_speed.py --rigid --latent-size 64 --message-passing-steps 5 --batch-size 128 --threads 1
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,7 +35,9 @@ def side_by_side(recordings: Recordings, n_bodies: int) -> Recordings:
     splits = {}
     for name, split in recordings.splits.items():
         count = split.n_trajectories - n_bodies + 1
-        poses = np.concatenate([split.poses[k : k + count] + np.array([k * shift, 0, 0, 0, 0, 0, 0]) for k in range(n_bodies)], axis=2)
+        poses = np.concatenate(
+            [split.poses[k : k + count] + np.array([k * shift, 0, 0, 0, 0, 0, 0]) for k in range(n_bodies)], axis=2
+        )
         lengths = np.min([split.lengths[k : k + count] for k in range(n_bodies)], axis=0)
         poses[np.arange(split.n_frames)[None, :] >= lengths[:, None]] = np.nan
         splits[name] = Split(poses, lengths)
@@ -42,10 +45,16 @@ def side_by_side(recordings: Recordings, n_bodies: int) -> Recordings:
     return dataclasses.replace(recordings, meta=meta, splits=splits)
 
 
-def training_samples_per_second(module: GNNModule, dataset: Recordings, batch_size: int, steps: int) -> tuple[float, float]:
+def training_samples_per_second(
+    module: GNNModule, dataset: Recordings, batch_size: int, steps: int
+) -> tuple[float, float]:
     """Samples/s of whole training steps, and of the bare network's forward + backward on the same graphs."""
     rigid = module.hparams.rigid
-    loader = iter(GNNDataModule(dataset, batch_size=batch_size, velocity_history=module.hparams.velocity_history, rigid=rigid).train_dataloader())
+    loader = iter(
+        GNNDataModule(
+            dataset, batch_size=batch_size, velocity_history=module.hparams.velocity_history, rigid=rigid
+        ).train_dataloader()
+    )
     optimizer = torch.optim.Adam(module.parameters(), lr=module.hparams.lr)
 
     def step():
@@ -106,12 +115,20 @@ def synchronize(device: torch.device) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--dataset", default=str(REPO_ROOT / "assets" / "contactnets_cube"), help="a single-body recordings folder")
-    parser.add_argument("--bodies", type=int, nargs="+", default=[1, 3], help="scenes to time: this many copies side by side")
+    parser.add_argument(
+        "--dataset", default=str(REPO_ROOT / "assets" / "contactnets_cube"), help="a single-body recordings folder"
+    )
+    parser.add_argument(
+        "--bodies", type=int, nargs="+", default=[1, 3], help="scenes to time: this many copies side by side"
+    )
     parser.add_argument("--latent-size", type=int, default=128)
     parser.add_argument("--message-passing-steps", type=int, default=10)
     parser.add_argument("--batch-size", type=int, default=64)
-    parser.add_argument("--rigid", action="store_true", help="model=gnn's rigid simulator (3 velocities of history) instead of the paper's")
+    parser.add_argument(
+        "--rigid",
+        action="store_true",
+        help="model=gnn's rigid simulator (3 velocities of history) instead of the paper's",
+    )
     parser.add_argument("--train-steps", type=int, default=10)
     parser.add_argument("--rollout-trajectories", type=int, default=16)
     parser.add_argument("--rollout-frames", type=int, default=50)
@@ -129,8 +146,11 @@ def main() -> None:
     for n_bodies in args.bodies:
         dataset = single if n_bodies == 1 else side_by_side(single, n_bodies)
         module = GNNModule(
-            dataset, latent_size=args.latent_size, message_passing_steps=args.message_passing_steps,
-            rigid=args.rigid, velocity_history=3 if args.rigid else 5,
+            dataset,
+            latent_size=args.latent_size,
+            message_passing_steps=args.message_passing_steps,
+            rigid=args.rigid,
+            velocity_history=3 if args.rigid else 5,
         ).to(args.device)
         module.setup("fit")
         samples, bare = training_samples_per_second(module, dataset, args.batch_size, args.train_steps)

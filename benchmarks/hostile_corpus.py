@@ -8,6 +8,7 @@ the folder it was pointed at, no payload executed, and (for oversized arrays) a 
 breaks one of these fails; its failure is sorted into the category it broke. The fuzz test is one case of the
 corpus here and its examples are counted separately; positive controls (valid input still accepted) are listed apart.
 """
+
 from __future__ import annotations
 
 import re
@@ -45,7 +46,16 @@ def classify(failure: str) -> str:
 def main() -> int:
     with tempfile.TemporaryDirectory() as folder:
         report = Path(folder) / "junit.xml"
-        command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={report}", str(REPO / "tests" / "test_hostile.py")]
+        command = [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            f"--junitxml={report}",
+            str(REPO / "tests" / "test_hostile.py"),
+        ]
         started = time.monotonic()
         try:
             subprocess.run(command, cwd=REPO, timeout=TIMEOUT_S, capture_output=True, text=True)
@@ -78,15 +88,31 @@ def main() -> int:
     fuzz = re.search(r"max_examples=(\d+)", (REPO / "tests" / "test_hostile.py").read_text())
     worst = max(peaks.items(), key=lambda item: item[1]) if peaks else ("-", float("nan"))
     print(f"hostile corpus (tests/test_hostile.py), {elapsed:.0f} s{' - TIMED OUT' if hung else ''}")
-    print(f"  cases                {counts['cases']}  (+ {fuzz.group(1) if fuzz else '?'} fuzzed datasets inside one of them)")
+    print(
+        f"  cases                {counts['cases']}  (+ {fuzz.group(1) if fuzz else '?'} fuzzed datasets inside one of them)"
+    )
     print(f"  clear errors         {counts['clear errors']}")
-    for category in ("tracebacks", "silent results", "hangs", "changed folders", "code executed", "memory", "unclear errors"):
+    for category in (
+        "tracebacks",
+        "silent results",
+        "hangs",
+        "changed folders",
+        "code executed",
+        "memory",
+        "unclear errors",
+    ):
         print(f"  {category:<20} {broken[category] + (1 if hung and category == 'hangs' else 0)}")
     print(f"  skipped              {counts['skipped']}")
     print(f"  positive controls    {controls['passed']} passed, {controls['failed']} failed")
-    print(f"  peak memory, worst refused oversized split: {worst[1]:.1f} MB  ({worst[0]}; reader process, fresh interpreter)")
+    print(
+        f"  peak memory, worst refused oversized split: {worst[1]:.1f} MB  ({worst[0]}; reader process, fresh interpreter)"
+    )
     print(f"  peak memory, largest process of the whole run (pytest, torch loaded): {children_peak_mb:.0f} MB")
-    return 0 if counts["cases"] and counts["clear errors"] == counts["cases"] and not hung and not controls["failed"] else 1
+    return (
+        0
+        if counts["cases"] and counts["clear errors"] == counts["cases"] and not hung and not controls["failed"]
+        else 1
+    )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
 """Times the hybrid model on CPU: inverse dynamics and training (transitions/s), and rollout (predicted frames/s)."""
+
 from __future__ import annotations
 
 import argparse
@@ -18,14 +19,22 @@ DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "assets" / "contactnets_
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="a single-body recordings folder with train and val splits")
+    parser.add_argument(
+        "--dataset",
+        type=Path,
+        default=DEFAULT_DATASET,
+        help="a single-body recordings folder with train and val splits",
+    )
     parser.add_argument("--epochs", type=int, default=2, help="training epochs to time")
     parser.add_argument("--batch-size", type=int, default=512)
     parser.add_argument("--context-frames", type=int, default=6)
     parser.add_argument("--rollout-split", default="val", help="split whose trajectories are rolled out")
     args = parser.parse_args()
 
-    dataset = read_recordings(args.dataset, splits=["train", "val"] if args.rollout_split in ("train", "val") else ["train", "val", args.rollout_split])
+    dataset = read_recordings(
+        args.dataset,
+        splits=["train", "val"] if args.rollout_split in ("train", "val") else ["train", "val", args.rollout_split],
+    )
     datamodule = HybridDataModule(dataset, context_frames=args.context_frames, batch_size=args.batch_size)
     started = time.perf_counter()
     all_transitions = transitions_from_split(dataset.split("train"), datamodule.scene, datamodule.settings)
@@ -54,9 +63,15 @@ def main() -> None:
     rollout_seconds = time.perf_counter() - started
     predicted_frames = len(context.poses) * (context.horizon - context.n_context)
 
-    print(f"dataset {dataset.name}: {len(all_transitions.frame)} train transitions, {n_train} in contact; torch threads {torch.get_num_threads()}")
-    print(f"inverse dynamics: {len(all_transitions.frame) / inverse_seconds:,.0f} transitions/s ({inverse_seconds:.2f} s)")
-    print(f"training (batch {args.batch_size}, no validation): {args.epochs * n_train / train_seconds:,.0f} transitions/s ({train_seconds:.2f} s for {args.epochs} epochs)")
+    print(
+        f"dataset {dataset.name}: {len(all_transitions.frame)} train transitions, {n_train} in contact; torch threads {torch.get_num_threads()}"
+    )
+    print(
+        f"inverse dynamics: {len(all_transitions.frame) / inverse_seconds:,.0f} transitions/s ({inverse_seconds:.2f} s)"
+    )
+    print(
+        f"training (batch {args.batch_size}, no validation): {args.epochs * n_train / train_seconds:,.0f} transitions/s ({train_seconds:.2f} s for {args.epochs} epochs)"
+    )
     print(
         f"rollout of {len(context.poses)} trajectories x {context.horizon - context.n_context} frames: "
         f"{predicted_frames / rollout_seconds:,.0f} frames/s ({rollout_seconds:.2f} s)"

@@ -1,4 +1,5 @@
 """Times compute_metrics on 110 tosses x 140 frames x 3 cubes, and eq. (1) on a SysID-sized candidate batch."""
+
 from __future__ import annotations
 
 import argparse
@@ -18,7 +19,9 @@ def clustered_cubes(rng: np.random.Generator, n_trajectories: int, n_frames: int
     positions = start + np.cumsum(steps, axis=1) / np.sqrt(np.arange(1, n_frames + 1))[:, None, None]
     positions[..., 2] = np.abs(positions[..., 2]) + WIDTH / 2
     # Accumulated rotation vectors are not composed rotations, but they tumble smoothly, which is all timing needs.
-    tumbling = rotations.from_rotation_vector(np.cumsum(rng.normal(scale=0.1, size=(n_trajectories, n_frames, n_bodies, 3)), axis=1))
+    tumbling = rotations.from_rotation_vector(
+        np.cumsum(rng.normal(scale=0.1, size=(n_trajectories, n_frames, n_bodies, 3)), axis=1)
+    )
     initial = rotations.uniform_random(rng, n_trajectories * n_bodies).reshape(n_trajectories, 1, n_bodies, 4)
     orientations = rotations.multiply(tumbling, initial)
     return np.concatenate([positions, orientations], axis=-1)
@@ -50,7 +53,9 @@ def main() -> None:
     meshes = [solid(6)] * args.bodies
 
     result = compute_metrics(true, pred, lengths, args.start_frame, meshes, floor_z=0.0)
-    seconds = best_time(lambda: compute_metrics(true, pred, lengths, args.start_frame, meshes, floor_z=0.0), args.repeats)
+    seconds = best_time(
+        lambda: compute_metrics(true, pred, lengths, args.start_frame, meshes, floor_z=0.0), args.repeats
+    )
     frames = result.summary["scored_frames"]
     print(
         f"compute_metrics: {args.trajectories} x {args.frames} frames x {args.bodies} cubes, {frames} scored frames: "
@@ -62,7 +67,9 @@ def main() -> None:
     candidates = true[None] + rng.normal(scale=1e-3, size=(args.candidates,) + true.shape)
     seconds = best_time(lambda: configuration_error(true, candidates, widths), args.repeats)
     frames = args.candidates * args.trajectories * args.frames
-    print(f"configuration_error: {args.candidates} candidates x {args.trajectories} x {args.frames} frames: {seconds * 1e3:.1f} ms, {frames / seconds:,.0f} frames/s")
+    print(
+        f"configuration_error: {args.candidates} candidates x {args.trajectories} x {args.frames} frames: {seconds * 1e3:.1f} ms, {frames / seconds:,.0f} frames/s"
+    )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
 """Times MujocoRollouts.simulate against a bare mujoco.rollout.rollout of the same models, states and steps."""
+
 from __future__ import annotations
 
 import argparse
@@ -39,7 +40,9 @@ def first_frames(dataset: Recordings) -> tuple[np.ndarray, np.ndarray]:
     return split.poses[:, 0], velocities[:, 0]
 
 
-def three_body_scene(dataset: Recordings, rng: np.random.Generator, count: int) -> tuple[Recordings, np.ndarray, np.ndarray]:
+def three_body_scene(
+    dataset: Recordings, rng: np.random.Generator, count: int
+) -> tuple[Recordings, np.ndarray, np.ndarray]:
     """The first body thrice, started from three recorded tosses side by side and pushed towards each other."""
     meta = copy.deepcopy(dataset.meta)
     meta["bodies"] = [dict(meta["bodies"][0], name=f"body{k}") for k in range(3)]

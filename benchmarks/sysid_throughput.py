@@ -1,4 +1,5 @@
 """SysID objective throughput (evaluations/s) against bare mujoco.rollout on the same work, and the paper-budget time."""
+
 from __future__ import annotations
 
 import argparse
@@ -23,8 +24,15 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, default=CUBE_DATA)
     parser.add_argument("--generations", type=int, default=30)
     parser.add_argument("--num-workers", type=int, default=16, help="candidates per generation")
-    parser.add_argument("--batch-trajectories", type=int, default=0, help="train tosses per evaluation (0: all, as budget=quick and paper)")
-    parser.add_argument("--budget", type=int, default=10_000, help="evaluations NGOpt is told it has (picks its algorithm)")
+    parser.add_argument(
+        "--batch-trajectories",
+        type=int,
+        default=0,
+        help="train tosses per evaluation (0: all, as budget=quick and paper)",
+    )
+    parser.add_argument(
+        "--budget", type=int, default=10_000, help="evaluations NGOpt is told it has (picks its algorithm)"
+    )
     parser.add_argument("--context-frames", type=int, default=6)
     args = parser.parse_args()
 
@@ -32,7 +40,9 @@ def main() -> None:
     space = SearchSpace(dataset.n_bodies)
     rollouts = MujocoRollouts(dataset)
     objective = ConfigurationObjective(dataset, "train", args.context_frames, rollouts)
-    optimizer = ng.optimizers.NGOpt(parametrization=space.parametrization(0), budget=args.budget, num_workers=args.num_workers)
+    optimizer = ng.optimizers.NGOpt(
+        parametrization=space.parametrization(0), budget=args.budget, num_workers=args.num_workers
+    )
     rng = np.random.default_rng(0)
     batch = args.batch_trajectories or objective.n_trajectories
     batches = [np.sort(rng.choice(objective.n_trajectories, batch, replace=False)) for _ in range(args.generations)]
@@ -65,11 +75,17 @@ def main() -> None:
     evaluations = args.generations * args.num_workers
     rate = evaluations / search_seconds
     paper_evaluations = 10_000 * 10  # at this batch size
-    print(f"scene {dataset.name}: NGOpt -> {type(optimizer.optim).__name__}, {args.generations} generations x {args.num_workers} candidates x {batch} trajectories, {rollouts.nthread} threads")
+    print(
+        f"scene {dataset.name}: NGOpt -> {type(optimizer.optim).__name__}, {args.generations} generations x {args.num_workers} candidates x {batch} trajectories, {rollouts.nthread} threads"
+    )
     print(f"search : {rate:8.1f} evaluations/s  {steps / search_seconds:12.0f} steps/s")
-    print(f"bare   : {evaluations / bare_seconds:8.1f} evaluations/s  {steps / bare_seconds:12.0f} steps/s (mujoco.rollout alone)")
+    print(
+        f"bare   : {evaluations / bare_seconds:8.1f} evaluations/s  {steps / bare_seconds:12.0f} steps/s (mujoco.rollout alone)"
+    )
     print(f"ratio search/bare = {bare_seconds / search_seconds:.2f}  (goal >= 0.8)")
-    print(f"paper budget (10 restarts x 10,000 evaluations) on this machine: about {paper_evaluations / rate / 3600:.1f} h")
+    print(
+        f"paper budget (10 restarts x 10,000 evaluations) on this machine: about {paper_evaluations / rate / 3600:.1f} h"
+    )
 
 
 if __name__ == "__main__":

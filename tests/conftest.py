@@ -1,4 +1,5 @@
 """Shared test fixtures: small in-memory recordings datasets with known motion."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,13 +13,28 @@ from contactbench.recordings import FORMAT, VERSION, Recordings, Split
 def cube_mesh(width: float = 0.1) -> Mesh:
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float) * width / 2
     faces = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]],
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ],
         dtype=np.int64,
     )
     return Mesh(corners, faces)
 
 
-def falling_cubes(n_trajectories: int = 3, n_frames: int = 12, n_bodies: int = 1, dt: float = 0.01, seed: int = 0) -> Recordings:
+def falling_cubes(
+    n_trajectories: int = 3, n_frames: int = 12, n_bodies: int = 1, dt: float = 0.01, seed: int = 0
+) -> Recordings:
     """Cubes in free fall (exact semi-implicit Euler kinematics), spinning at constant world angular velocity."""
     rng = np.random.default_rng(seed)
     gravity = np.array([0.0, 0.0, -9.81])
@@ -49,7 +65,15 @@ def falling_cubes(n_trajectories: int = 3, n_frames: int = 12, n_bodies: int = 1
     }
     lengths = np.full(n_trajectories, n_frames, dtype=np.int64)
     split = Split(poses, lengths, velocities, {"source_index": np.arange(n_trajectories)})
-    return Recordings(meta=meta, meshes={"meshes/cube.obj": cube_mesh()}, splits={"train": split, "val": split.select(range(n_trajectories)), "test": split.select(range(n_trajectories))})
+    return Recordings(
+        meta=meta,
+        meshes={"meshes/cube.obj": cube_mesh()},
+        splits={
+            "train": split,
+            "val": split.select(range(n_trajectories)),
+            "test": split.select(range(n_trajectories)),
+        },
+    )
 
 
 @pytest.fixture

@@ -1,21 +1,27 @@
 """diagnose.py: the pipeline writes its verdict and report, never reads meta.generator, and names a strong effect."""
+
 from __future__ import annotations
 
 import json
 
 import pytest
+from test_pipeline import compose_config, run_entry_point
 
 from contactbench import runs
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.scenes import SceneSpec
 from contactbench.recordings import read_recordings, write_recordings
-from test_pipeline import compose_config, run_entry_point
 
 CUBE = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)
 # Enough tosses and search for a strong effect to stand out; about 20 s per diagnosis on 2 cores.
 SMALL = [
-    "budget=smoke", "budget.diagnose.fit_trajectories=30", "budget.diagnose.val_trajectories=40", "budget.diagnose.base_evaluations=48",
-    "budget.diagnose.lsq_iterations=8", "budget.diagnose.front_runners=2", "budget.diagnose.bootstrap=500",
+    "budget=smoke",
+    "budget.diagnose.fit_trajectories=30",
+    "budget.diagnose.val_trajectories=40",
+    "budget.diagnose.base_evaluations=48",
+    "budget.diagnose.lsq_iterations=8",
+    "budget.diagnose.front_runners=2",
+    "budget.diagnose.bootstrap=500",
 ]
 SIZES = {"train": 30, "val": 40, "test": 20}
 
@@ -27,7 +33,15 @@ def diagnose(path, out_dir, tmp_path, overrides=()):
 
 
 def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_path):
-    source = generate_dataset(CUBE, tmp_path / "tilted", split_sizes={"train": 8, "val": 8, "test": 4}, workers=1, progress=False, effects=("floor_tilt",), effect_strength=2.0)
+    source = generate_dataset(
+        CUBE,
+        tmp_path / "tilted",
+        split_sizes={"train": 8, "val": 8, "test": 4},
+        workers=1,
+        progress=False,
+        effects=("floor_tilt",),
+        effect_strength=2.0,
+    )
     full = read_recordings(source)
     stripped = full.for_models(list(full.splits))
     assert "generator" in full.meta and "generator" not in stripped.meta
@@ -54,11 +68,21 @@ def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_pat
 
 def test_a_strong_floor_tilt_is_named_and_a_null_dataset_gets_none(tmp_path):
     null = generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False)
-    tilted = generate_dataset(CUBE, tmp_path / "tilt", split_sizes=SIZES, workers=1, progress=False, effects=("floor_tilt",), effect_strength=2.0)
+    tilted = generate_dataset(
+        CUBE,
+        tmp_path / "tilt",
+        split_sizes=SIZES,
+        workers=1,
+        progress=False,
+        effects=("floor_tilt",),
+        effect_strength=2.0,
+    )
     verdict, document = diagnose(tilted, tmp_path / "tilt_out", tmp_path, SMALL)
     assert verdict == "effect" and [e["name"] for e in document["effects"]] == ["floor_tilt"]
     fitted = document["effects"][0]["parameters"]
-    assert fitted["floor_tilt_x"] == pytest.approx(0.05, abs=0.02) and fitted["floor_tilt_y"] == pytest.approx(-0.024, abs=0.02)
+    assert fitted["floor_tilt_x"] == pytest.approx(0.05, abs=0.02) and fitted["floor_tilt_y"] == pytest.approx(
+        -0.024, abs=0.02
+    )
     assert document["heldout"]["augmented"]["pos_err"] < document["heldout"]["base"]["pos_err"]
     verdict, document = diagnose(null, tmp_path / "null_out", tmp_path, SMALL)
     assert verdict == "none" and document["effects"] == []
@@ -67,16 +91,32 @@ def test_a_strong_floor_tilt_is_named_and_a_null_dataset_gets_none(tmp_path):
 def test_bad_recordings_path_is_one_clear_line(tmp_path):
     result = run_entry_point("diagnose.py", [f"recordings={tmp_path}/nowhere", "budget=smoke"], tmp_path)
     assert result.returncode == 2
-    assert result.stderr.strip().startswith("error:") and "nowhere" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert (
+        result.stderr.strip().startswith("error:")
+        and "nowhere" in result.stderr
+        and len(result.stderr.strip().splitlines()) == 1
+    )
 
 
 def test_only_a_smoke_budget_is_called_inconclusive():
     from contactbench.diagnosis.pipeline import Budget
     from contactbench.diagnosis.report import budget_sentence, summary_sentence
 
-    held = {"base": {"pos_err": 0.3}, "augmented": {"pos_err": 0.2}, "improvement": 0.3, "ci95": [0.1, 0.4], "confirmed": True}
-    document = {"verdict": "effect", "effects": [{"name": "air_drag", "physics": "drag"}], "heldout": held,
-                "located": {"where": "impact"}, "located_after": {"where": "impact"}, "budget": Budget().__dict__}
+    held = {
+        "base": {"pos_err": 0.3},
+        "augmented": {"pos_err": 0.2},
+        "improvement": 0.3,
+        "ci95": [0.1, 0.4],
+        "confirmed": True,
+    }
+    document = {
+        "verdict": "effect",
+        "effects": [{"name": "air_drag", "physics": "drag"}],
+        "heldout": held,
+        "located": {"where": "impact"},
+        "located_after": {"where": "impact"},
+        "budget": Budget().__dict__,
+    }
     quick = {**document, "budget_name": "quick", "conclusive": True}
     assert "conclusive" not in budget_sentence(quick) and "conclusive" not in summary_sentence(quick)
     assert budget_sentence(quick).startswith("Budget: quick (60 train tosses fitted, 120 val tosses")
@@ -88,7 +128,15 @@ def test_only_a_smoke_budget_is_called_inconclusive():
 def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_gravity_scale(tmp_path):
     # Strength 2 (0.91 g): at strength 1 (0.95 g) the effect closes just about the 5% margin on these few tosses,
     # whose short-horizon loss lives almost all in impacts.
-    weak = generate_dataset(CUBE, tmp_path / "weak", split_sizes=SIZES, workers=1, progress=False, effects=("gravity_scale",), effect_strength=2.0)
+    weak = generate_dataset(
+        CUBE,
+        tmp_path / "weak",
+        split_sizes=SIZES,
+        workers=1,
+        progress=False,
+        effects=("gravity_scale",),
+        effect_strength=2.0,
+    )
     verdict, document = diagnose(weak, tmp_path / "weak_out", tmp_path, SMALL)
     falling = document["free_flight"]
     assert falling["differs"] and falling["confirmed"] and falling["scale"] == pytest.approx(1 / 1.1, abs=3e-3)

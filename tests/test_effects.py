@@ -1,4 +1,5 @@
 """Concealed effects: PyBullet does what each effect says, MuJoCo's model of it agrees, and the meta stays silent."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,7 +21,12 @@ CUBE = solid(6)
 SPEC = SceneSpec("effects", friction=0.5, restitution=0.0)
 
 
-def fly(effects: ConcealedEffects, velocity=(2.0, 0.0, 0.0, 0.0, 0.0, 0.0), frames: int = 30, orientation=(1.0, 0.0, 0.0, 0.0)):
+def fly(
+    effects: ConcealedEffects,
+    velocity=(2.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    frames: int = 30,
+    orientation=(1.0, 0.0, 0.0, 0.0),
+):
     poses0 = np.array([[0.0, 0.0, 3.0, *orientation]])
     with BulletScene(CUBE, SPEC, SETTINGS, effects) as scene:
         return scene.simulate(poses0, np.array([velocity], dtype=float), frames)
@@ -105,12 +111,28 @@ def _stub_root(tmp_path):
 def test_effects_leave_the_tosses_and_meta_alone_except_the_generator_record(tmp_path):
     sizes = {"train": 3, "val": 2, "test": 2}
     plain = read_recordings(generate_dataset(SPEC, tmp_path / "plain", split_sizes=sizes, workers=1, progress=False))
-    tilted = read_recordings(generate_dataset(SPEC, tmp_path / "tilted", split_sizes=sizes, workers=1, progress=False, effects=("floor_tilt",), effect_strength=2.0))
+    tilted = read_recordings(
+        generate_dataset(
+            SPEC,
+            tmp_path / "tilted",
+            split_sizes=sizes,
+            workers=1,
+            progress=False,
+            effects=("floor_tilt",),
+            effect_strength=2.0,
+        )
+    )
     for split in sizes:
-        np.testing.assert_array_equal(plain.split(split).poses[:, 0], tilted.split(split).poses[:, 0])  # same initial states
+        np.testing.assert_array_equal(
+            plain.split(split).poses[:, 0], tilted.split(split).poses[:, 0]
+        )  # same initial states
         assert np.abs(plain.split(split).poses - tilted.split(split).poses).max() > 1e-3  # different motion
-    assert {k: v for k, v in plain.meta.items() if k != "generator"} == {k: v for k, v in tilted.meta.items() if k != "generator"}
-    assert tilted.meta["generator"]["effects"] == [{"name": "floor_tilt", "parameters": {"floor_tilt_x": 0.05, "floor_tilt_y": -0.024}}]
+    assert {k: v for k, v in plain.meta.items() if k != "generator"} == {
+        k: v for k, v in tilted.meta.items() if k != "generator"
+    }
+    assert tilted.meta["generator"]["effects"] == [
+        {"name": "floor_tilt", "parameters": {"floor_tilt_x": 0.05, "floor_tilt_y": -0.024}}
+    ]
     assert plain.meta["generator"]["effects"] == []
 
 
@@ -145,11 +167,15 @@ def test_wind_and_air_drag_together_do_not_depend_on_their_order():
 def test_gravity_scale_makes_pybullet_fall_slower_than_meta_says_and_mujoco_models_it():
     effects = ConcealedEffects.named(["gravity_scale"], 1.0)
     assert effects.gravity_scale == pytest.approx(1 / 1.05)
-    assert effects.truth(["gravity_scale"]) == [{"name": "gravity_scale", "parameters": {"gravity_scale": effects.gravity_scale}}]
+    assert effects.truth(["gravity_scale"]) == [
+        {"name": "gravity_scale", "parameters": {"gravity_scale": effects.gravity_scale}}
+    ]
     throw = (1.5, -0.8, 0.5, 6.0, -4.0, 9.0)
     poses, _ = fly(effects, velocity=throw, frames=30)
     acceleration = np.diff(poses[:, 0, :3], 2, axis=0) / SETTINGS.dt**2
-    np.testing.assert_allclose(acceleration, np.broadcast_to(np.array(SETTINGS.gravity) / 1.05, acceleration.shape), atol=1e-6)
+    np.testing.assert_allclose(
+        acceleration, np.broadcast_to(np.array(SETTINGS.gravity) / 1.05, acceleration.shape), atol=1e-6
+    )
     # MuJoCo's model of it: the scene's gravity times the scale; the same path as PyBullet's, not the plain one.
     rollouts = MujocoRollouts(_dataset_stub(), nthread=1)
     scaled = ContactParameters((0.5,), 0.0, None, None, effects=SceneEffects(gravity_scale=1 / 1.05))

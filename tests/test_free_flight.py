@@ -1,4 +1,5 @@
 """diagnosis.free_flight: the model-free check that bodies in free flight fall at meta.gravity."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -16,7 +17,11 @@ SIZES = {"train": 10, "val": 10, "test": 10}
 def test_a_concealed_weaker_gravity_is_measured_in_free_flight_and_a_null_dataset_is_consistent(tmp_path):
     rng = np.random.default_rng(0)
     null = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False))
-    weak = read_recordings(generate_dataset(CUBE, tmp_path / "weak", split_sizes=SIZES, workers=1, progress=False, effects=("gravity_scale",)))
+    weak = read_recordings(
+        generate_dataset(
+            CUBE, tmp_path / "weak", split_sizes=SIZES, workers=1, progress=False, effects=("gravity_scale",)
+        )
+    )
     assert weak.meta["gravity"] == null.meta["gravity"]  # concealed: meta keeps 9.8
     found = free_flight.check(weak.for_models(list(weak.splits)), rng, draws=200)
     assert found["scale"] == pytest.approx(1 / 1.05, abs=2e-3)
@@ -32,7 +37,9 @@ def test_a_concealed_weaker_gravity_is_measured_in_free_flight_and_a_null_datase
 
 
 def test_free_frames_leave_out_contact_and_the_ends(tmp_path):
-    data = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes={"train": 4}, workers=1, progress=False))
+    data = read_recordings(
+        generate_dataset(CUBE, tmp_path / "null", split_sizes={"train": 4}, workers=1, progress=False)
+    )
     split = data.split("train")
     free = free_flight.free_frames(data, split)
     assert not free[:, 0].any() and not free[:, -1].any()

@@ -1,4 +1,5 @@
 """Tests of the PyBullet benchmark generator: solids, initial states, engine physics, datasets and determinism."""
+
 from __future__ import annotations
 
 import itertools
@@ -97,7 +98,9 @@ def test_multi_body_spawn_has_no_overlapping_boxes_and_stays_in_the_region():
 
 
 def test_velocity_bias_points_to_the_centre():
-    spec = SceneSpec("multicubes", 0.18, 0.125, bodies=4, center_bias_speed=0.5, velocity_low=(0, 0, 0), velocity_high=(0, 0, 0))
+    spec = SceneSpec(
+        "multicubes", 0.18, 0.125, bodies=4, center_bias_speed=0.5, velocity_low=(0, 0, 0), velocity_high=(0, 0, 0)
+    )
     poses, velocities = sample_initial_state(spec, CUBE, np.random.default_rng(2))
     direction = poses[:, :2] / np.linalg.norm(poses[:, :2], axis=1, keepdims=True)
     np.testing.assert_allclose(velocities[:, :2], -0.5 * direction, atol=1e-15)
@@ -138,7 +141,15 @@ def test_no_air_drag_on_objects():
     velocities0[0] = [0.3, -0.2, 1.0, 3.0, -2.0, 5.0]
     with cube_scene() as scene:
         info = pybullet.getDynamicsInfo(scene.bodies[0], -1, physicsClientId=scene.client)
-        mass, friction, inertia, restitution, rolling, spinning, margin = info[0], info[1], info[2], info[5], info[6], info[7], info[11]
+        mass, friction, inertia, restitution, rolling, spinning, margin = (
+            info[0],
+            info[1],
+            info[2],
+            info[5],
+            info[6],
+            info[7],
+            info[11],
+        )
         assert (mass, friction, restitution, rolling, spinning, margin) == (0.37, 0.5, 0.0, 0.0, 0.0, 0.0)
         np.testing.assert_allclose(inertia, scene.inertia_diagonal, rtol=1e-12)
         _, velocities = scene.simulate(poses0, velocities0, 30)
@@ -146,7 +157,9 @@ def test_no_air_drag_on_objects():
         # horizontal velocity and its spin exactly.
         drift = np.abs(velocities[:, 0, [0, 1, 3, 4, 5]] - velocities0[0, [0, 1, 3, 4, 5]]).max()
         assert drift < 1e-12
-        pybullet.changeDynamics(scene.bodies[0], -1, linearDamping=0.04, angularDamping=0.04, physicsClientId=scene.client)
+        pybullet.changeDynamics(
+            scene.bodies[0], -1, linearDamping=0.04, angularDamping=0.04, physicsClientId=scene.client
+        )
         _, damped = scene.simulate(poses0, velocities0, 30)
         assert np.abs(damped[:, 0, [0, 1, 3, 4, 5]] - velocities0[0, [0, 1, 3, 4, 5]]).max() > 1e-4
 
@@ -234,7 +247,13 @@ def test_contact_wrenches_explain_the_motion():
 def test_a_toss_does_not_depend_on_the_tosses_before_it():
     # Hardest case: the second toss starts exactly where the first ended, resting cubes in contact, where a
     # leftover contact manifold would warm-start the solver.
-    start = np.array([[0.0, 0.0, 0.06, 1.0, 0.0, 0.0, 0.0], [WIDTH, 0.0, 0.06, 1.0, 0.0, 0.0, 0.0], [0.05, 0.0, 0.17, 0.9, 0.1, 0.3, 0.2]])
+    start = np.array(
+        [
+            [0.0, 0.0, 0.06, 1.0, 0.0, 0.0, 0.0],
+            [WIDTH, 0.0, 0.06, 1.0, 0.0, 0.0, 0.0],
+            [0.05, 0.0, 0.17, 0.9, 0.1, 0.3, 0.2],
+        ]
+    )
     start[:, 3:] = rotations.normalize(start[:, 3:])
     with cube_scene(bodies=3) as scene:
         poses, velocities = scene.simulate(start, np.zeros((3, 6)), 60)
@@ -270,7 +289,11 @@ def test_dataset_layout_splits_and_initial_states(tmp_path):
     np.testing.assert_allclose(recordings.bodies[0].inertia_diagonal, SETTINGS.mass * WIDTH**2 / 6, rtol=1e-12)
     np.testing.assert_allclose(recordings.body_mesh(0).vertices, CUBE.vertices)
     generator = recordings.meta["generator"]
-    assert generator["engine"] == "pybullet" and generator["seed"] == 7 and generator["derived_seed"] == derive_seed(7, spec)
+    assert (
+        generator["engine"] == "pybullet"
+        and generator["seed"] == 7
+        and generator["derived_seed"] == derive_seed(7, spec)
+    )
     assert generator["scene"]["bodies"] == 2 and generator["settings"]["frames"] == 40 and generator["solid"] == "cube"
     toss = 0
     for name, size in SMALL_SPLITS.items():

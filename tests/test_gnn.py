@@ -1,4 +1,5 @@
 """The mesh GNN: graphs, shape matching, features and targets, train-only statistics, training, checkpoints, rollouts."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -7,9 +8,9 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+from conftest import falling_cubes
 from pytorch_lightning.callbacks import ModelCheckpoint
 
-from conftest import falling_cubes
 from contactbench import rotations
 from contactbench.config import REPO_ROOT
 from contactbench.kinematics import world_vertices
@@ -46,7 +47,9 @@ def without_spin(recordings: Recordings) -> Recordings:
 
 def simulator_for(recordings: Recordings, **options) -> LearnedSimulator:
     scene = MeshScene.from_recordings(recordings)
-    return LearnedSimulator(scene, recordings.dt, recordings.floor_z, collision_radius(scene.widths), **{**TINY, **options})
+    return LearnedSimulator(
+        scene, recordings.dt, recordings.floor_z, collision_radius(scene.widths), **{**TINY, **options}
+    )
 
 
 # ---------------------------------------------------------------- graphs
@@ -76,7 +79,9 @@ def test_collision_edges_join_nearby_vertices_of_different_bodies_only():
         ]
     )
     positions = torch.as_tensor(scene.world_vertices(poses))
-    edge_index, n_mesh = build_edges(positions, torch.as_tensor(scene.node_body), torch.as_tensor(scene.mesh_edges), radius)
+    edge_index, n_mesh = build_edges(
+        positions, torch.as_tensor(scene.node_body), torch.as_tensor(scene.mesh_edges), radius
+    )
     assert n_mesh == 2 * scene.mesh_edges.shape[1]
     senders, receivers = edge_index[:, n_mesh:].numpy()
     # the 4 facing corner pairs, 0.05 w apart; every other cross-body pair is over 1.0 w > 0.8 w apart
@@ -141,7 +146,9 @@ def test_shape_matching_is_the_least_squares_fit_of_noisy_vertices():
     assert torch.all(best <= residual(true_rotation, torch.as_tensor(poses[:, :3])))
     for _ in range(20):  # any small rigid perturbation of the fit fits worse
         turn = torch.as_tensor(rotations.to_matrix(rotations.from_rotation_vector(rng.normal(scale=1e-3, size=(5, 3)))))
-        assert torch.all(residual(turn @ rotation, translation + torch.as_tensor(rng.normal(scale=1e-4, size=(5, 3)))) > best)
+        assert torch.all(
+            residual(turn @ rotation, translation + torch.as_tensor(rng.normal(scale=1e-4, size=(5, 3)))) > best
+        )
     np.testing.assert_allclose(translation.numpy(), poses[:, :3], atol=0.05)
 
 
@@ -199,7 +206,10 @@ def reference_statistics(split: Split, scene: MeshScene, dt: float) -> dict[str,
         vertices = scene.world_vertices(split.poses[n, : split.lengths[n]])
         velocities.append(np.diff(vertices, axis=0).reshape(-1, 3) / dt)
         accelerations.append(np.diff(vertices, n=2, axis=0).reshape(-1, 3) / dt**2)
-    return {name: (np.concatenate(v).mean(0), np.concatenate(v).std(0)) for name, v in [("velocity", velocities), ("acceleration", accelerations)]}
+    return {
+        name: (np.concatenate(v).mean(0), np.concatenate(v).std(0))
+        for name, v in [("velocity", velocities), ("acceleration", accelerations)]
+    }
 
 
 def test_normalisation_comes_from_the_train_split_only():
@@ -263,8 +273,15 @@ def test_per_step_projection_keeps_every_body_rigid():
     rest = simulator.rest_vertices
     for nodes in simulator.body_slices:
         rest_distances = torch.cdist(rest[nodes], rest[nodes])
-        torch.testing.assert_close(torch.cdist(projected[..., nodes, :], projected[..., nodes, :]), rest_distances.expand(2, 10, 8, 8), atol=1e-5, rtol=0)
-        assert not torch.allclose(torch.cdist(free[..., nodes, :], free[..., nodes, :]), rest_distances.expand(2, 10, 8, 8), atol=1e-5)
+        torch.testing.assert_close(
+            torch.cdist(projected[..., nodes, :], projected[..., nodes, :]),
+            rest_distances.expand(2, 10, 8, 8),
+            atol=1e-5,
+            rtol=0,
+        )
+        assert not torch.allclose(
+            torch.cdist(free[..., nodes, :], free[..., nodes, :]), rest_distances.expand(2, 10, 8, 8), atol=1e-5
+        )
     torch.testing.assert_close(project_to_rigid(rest, simulator.body_slices, projected), projected, atol=1e-5, rtol=0)
 
 
@@ -292,8 +309,15 @@ def test_trainer_checkpoints_reload_and_roll_out(tmp_path, n_bodies):
     recordings = falling_cubes(n_trajectories=4, n_frames=16, n_bodies=n_bodies)
     module = GNNModule(recordings, context_frames=6, val_rollouts=2, **TINY)
     checkpoint = ModelCheckpoint(dirpath=tmp_path, monitor="val/rollout_pos_err", mode="min", save_last=True)
-    options = dict(val_check_interval=10, check_val_every_n_epoch=None, callbacks=[checkpoint], logger=False,
-                   enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
+    options = dict(
+        val_check_interval=10,
+        check_val_every_n_epoch=None,
+        callbacks=[checkpoint],
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+    )
     trainer = pl.Trainer(max_steps=20, **options)
     trainer.fit(module, datamodule=GNNDataModule(recordings, context_frames=6))
     assert trainer.global_step == 20
@@ -312,13 +336,19 @@ def test_trainer_checkpoints_reload_and_roll_out(tmp_path, n_bodies):
     assert np.all(np.isfinite(predicted))
 
     resumed = pl.Trainer(max_steps=24, **options)
-    resumed.fit(GNNModule(recordings, context_frames=6, val_rollouts=2, **TINY), datamodule=GNNDataModule(recordings), ckpt_path=checkpoint.last_model_path)
+    resumed.fit(
+        GNNModule(recordings, context_frames=6, val_rollouts=2, **TINY),
+        datamodule=GNNDataModule(recordings),
+        ckpt_path=checkpoint.last_model_path,
+    )
     assert resumed.global_step == 24
 
 
 def test_runs_on_the_real_cube_with_variable_lengths():
     real = read_recordings(REPO_ROOT / "assets" / "contactnets_cube", splits=["train", "val"])
-    small = dataclasses.replace(real, splits={"train": real.split("train").select(range(5)), "val": real.split("val").select(range(3))})
+    small = dataclasses.replace(
+        real, splits={"train": real.split("train").select(range(5)), "val": real.split("val").select(range(3))}
+    )
     assert len(set(small.split("val").lengths)) > 1
     windows = VertexWindows(small.split("train"), MeshScene.from_recordings(small), 7)
     assert len(windows) == int(np.sum(small.split("train").lengths - 6))

@@ -1,4 +1,5 @@
 """The rigid mesh GNN (model=gnn): torch quaternions, the rigid fit, exact free flight, rigidity, training, configs."""
+
 from __future__ import annotations
 
 import csv
@@ -8,11 +9,11 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+from conftest import falling_cubes
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from pytorch_lightning.callbacks import ModelCheckpoint
 
-from conftest import falling_cubes
 from contactbench import rotations
 from contactbench.config import CONFIG_DIR, REPO_ROOT
 from contactbench.models.base import make_context
@@ -37,7 +38,12 @@ def one_torch_thread():
 def rigid_simulator(recordings, **options) -> RigidLearnedSimulator:
     scene = MeshScene.from_recordings(recordings)
     simulator = RigidLearnedSimulator(
-        scene, recordings.dt, recordings.floor_z, recordings.gravity, collision_radius(scene.widths), 0.25 * scene.widths.max(),
+        scene,
+        recordings.dt,
+        recordings.floor_z,
+        recordings.gravity,
+        collision_radius(scene.widths),
+        0.25 * scene.widths.max(),
         **{**TINY, "velocity_history": 3, **options},
     )
     simulator.fit_normalisation(recordings.split("train"))
@@ -51,10 +57,18 @@ def test_torch_quaternions_match_the_numpy_ones():
     t = torch.as_tensor
     np.testing.assert_allclose(quaternions.rotate(t(q0), t(vectors)).numpy(), rotations.rotate(q0, vectors), atol=1e-12)
     np.testing.assert_allclose(quaternions.multiply(t(q0), t(q1)).numpy(), rotations.multiply(q0, q1), atol=1e-12)
-    np.testing.assert_allclose(quaternions.from_rotation_vector(t(rotation_vectors)).numpy(), rotations.from_rotation_vector(rotation_vectors), atol=1e-12)
-    np.testing.assert_allclose(quaternions.to_rotation_vector(t(q0)).numpy(), rotations.to_rotation_vector(q0), atol=1e-10)
     np.testing.assert_allclose(
-        quaternions.angular_velocity(t(q0), t(q1), 0.01).numpy(), rotations.angular_velocity_from_quaternions(q0, q1, 0.01), atol=1e-8
+        quaternions.from_rotation_vector(t(rotation_vectors)).numpy(),
+        rotations.from_rotation_vector(rotation_vectors),
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        quaternions.to_rotation_vector(t(q0)).numpy(), rotations.to_rotation_vector(q0), atol=1e-10
+    )
+    np.testing.assert_allclose(
+        quaternions.angular_velocity(t(q0), t(q1), 0.01).numpy(),
+        rotations.angular_velocity_from_quaternions(q0, q1, 0.01),
+        atol=1e-8,
     )
     # exp and log are smooth through the identity (the free-flight case), gradients included
     tiny = torch.tensor([[1e-13, -2e-13, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
@@ -107,7 +121,10 @@ def test_rollouts_in_contact_keep_every_body_rigid():
     rest = simulator.rest_vertices_double
     for nodes in simulator.body_slices:
         torch.testing.assert_close(
-            torch.cdist(vertices[..., nodes, :], vertices[..., nodes, :]), torch.cdist(rest[nodes], rest[nodes]).expand(2, 20, 8, 8), atol=1e-6, rtol=0
+            torch.cdist(vertices[..., nodes, :], vertices[..., nodes, :]),
+            torch.cdist(rest[nodes], rest[nodes]).expand(2, 20, 8, 8),
+            atol=1e-6,
+            rtol=0,
         )
 
 
@@ -145,7 +162,13 @@ def test_gnn_paper_composes_with_the_papers_values():
     cfg = compose_model("gnn_paper", "paper")
     module, datamodule = cfg.model.module, cfg.model.datamodule
     assert cfg.model.name == "gnn_paper" and module.rigid is False and module.per_step_projection is False
-    assert (module.latent_size, module.message_passing_steps, module.lr, module.noise_std, module.velocity_history) == (128, 10, 1e-4, 3e-4, 5)
+    assert (module.latent_size, module.message_passing_steps, module.lr, module.noise_std, module.velocity_history) == (
+        128,
+        10,
+        1e-4,
+        3e-4,
+        5,
+    )
     assert datamodule.batch_size == 64 and cfg.model.trainer.max_steps == 1_000_000
     assert cfg.model.callbacks.checkpoint.monitor == "val/rollout_pos_err"
 
@@ -157,12 +180,13 @@ def test_gnn_is_the_rigid_model_at_every_budget(budget):
     assert cfg.model.module.velocity_history + 1 <= cfg.context_frames
 
 
-
 def test_smoke_training_improves_on_the_untrained_model():
     """budget=smoke's settings on 40 real tosses: the held-out one-step loss falls below the untrained network's."""
     cfg = compose_model("gnn", "smoke")
     real = read_recordings(REPO_ROOT / "assets" / "contactnets_cube", splits=["train", "val"])
-    small = dataclasses.replace(real, splits={"train": real.split("train").select(range(40)), "val": real.split("val").select(range(10))})
+    small = dataclasses.replace(
+        real, splits={"train": real.split("train").select(range(40)), "val": real.split("val").select(range(10))}
+    )
     pl.seed_everything(0)
     module = instantiate(cfg.model.module, _partial_=True)(dataset=small, context_frames=cfg.context_frames)
     datamodule = instantiate(cfg.model.datamodule, _partial_=True)(dataset=small, context_frames=cfg.context_frames)
@@ -170,8 +194,12 @@ def test_smoke_training_improves_on_the_untrained_model():
     held_out = next(iter(datamodule.val_dataloader()))
     before = module.simulator.loss(held_out, add_noise=False).item()
     trainer = pl.Trainer(
-        max_steps=cfg.model.trainer.max_steps, limit_val_batches=0, logger=False, enable_checkpointing=False,
-        enable_progress_bar=False, enable_model_summary=False,
+        max_steps=cfg.model.trainer.max_steps,
+        limit_val_batches=0,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
     )
     trainer.fit(module, datamodule=datamodule)
     assert trainer.global_step == cfg.budget.gnn.max_steps
@@ -195,8 +223,12 @@ def test_collision_edges_carry_the_receivers_depth_inside_the_senders_body():
     corner = (current[0, receivers] - torch.tensor([0.04, -0.03, 0.97])).norm(dim=-1) < 1e-5
     inside = (simulator.node_body[senders] == 0) & corner
     assert int(inside.sum()) > 0
-    torch.testing.assert_close(features[n_mesh:][inside, 9], torch.full((int(inside.sum()),), -0.01 / simulator.radius), atol=1e-5, rtol=0)
-    torch.testing.assert_close(features[n_mesh:][inside, 10:], torch.tensor([1.0, 0.0, 0.0]).expand(int(inside.sum()), 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        features[n_mesh:][inside, 9], torch.full((int(inside.sum()),), -0.01 / simulator.radius), atol=1e-5, rtol=0
+    )
+    torch.testing.assert_close(
+        features[n_mesh:][inside, 10:], torch.tensor([1.0, 0.0, 0.0]).expand(int(inside.sum()), 3), atol=1e-5, rtol=0
+    )
 
 
 def test_free_flight_acceleration_is_measured_on_train_not_read_from_meta():
@@ -204,7 +236,9 @@ def test_free_flight_acceleration_is_measured_on_train_not_read_from_meta():
     recordings = falling_cubes(n_trajectories=3, n_frames=20, n_bodies=2)
     mislabelled = dataclasses.replace(recordings, meta={**recordings.meta, "gravity": [0.0, 0.0, -10.0]})
     simulator = rigid_simulator(mislabelled)
-    torch.testing.assert_close(simulator.free_flight_acceleration, torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64), atol=1e-8, rtol=0)
+    torch.testing.assert_close(
+        simulator.free_flight_acceleration, torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64), atol=1e-8, rtol=0
+    )
     near_floor = recordings.split("train").poses.copy()
     near_floor[..., 2] = 0.06  # every body within the contact distance of the floor: no frame is free
     assert not simulator.free_of_contact(torch.as_tensor(near_floor)).any()
@@ -215,15 +249,24 @@ def test_a_run_resumed_mid_epoch_trains_exactly_as_an_uninterrupted_one(tmp_path
     recordings = falling_cubes(n_trajectories=6, n_frames=14)
     lowered = recordings.split("train").poses.copy()
     lowered[..., 2] = 0.04 + 0.001 * np.arange(14)[None, :, None]
-    recordings = dataclasses.replace(recordings, splits={**recordings.splits, "train": Split(lowered, recordings.split("train").lengths)})
+    recordings = dataclasses.replace(
+        recordings, splits={**recordings.splits, "train": Split(lowered, recordings.split("train").lengths)}
+    )
     options = {"rigid": True, "velocity_history": 3, "lr": 1e-3, "lr_schedule": "cosine", "seed": 7, **TINY}
     data = {"rigid": True, "velocity_history": 3, "batch_size": 4, "seed": 7}  # 60 windows: 15 steps an epoch
 
     def fit(max_steps: int, resume_from: str | None = None, callbacks=()):
         pl.seed_everything(0)
         module = GNNModule(recordings, **options)
-        trainer = pl.Trainer(max_steps=max_steps, limit_val_batches=0, logger=False, callbacks=list(callbacks),
-                             enable_checkpointing=bool(callbacks), enable_progress_bar=False, enable_model_summary=False)
+        trainer = pl.Trainer(
+            max_steps=max_steps,
+            limit_val_batches=0,
+            logger=False,
+            callbacks=list(callbacks),
+            enable_checkpointing=bool(callbacks),
+            enable_progress_bar=False,
+            enable_model_summary=False,
+        )
         trainer.fit(module, datamodule=GNNDataModule(recordings, **data), ckpt_path=resume_from)
         return module
 

@@ -1,4 +1,5 @@
 """Hostile and careless input: crafted checkpoints, other runs' folders, paths and bytes in datasets. One clear error, nothing changed."""
+
 from __future__ import annotations
 
 import hashlib
@@ -19,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from conftest import falling_cubes
+from test_pipeline import compose_config, run_entry_point
+
 from contactbench import runs, settings
 from contactbench.errors import ContactbenchError
 from contactbench.models.sysid.module import NevergradSearch, check_search_state
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
-from test_pipeline import compose_config, run_entry_point
 
 SYSID = ["model=sysid", "dataset=contactnets_cube", "budget=smoke"]
 
@@ -101,7 +102,9 @@ def test_a_refused_command_changes_no_byte_of_the_folder(finished_sysid_run, tmp
 
 def test_a_refused_multirun_job_changes_no_byte_of_the_folder(finished_sysid_run, tmp_path):
     sweep = tmp_path / "sweep"
-    job = sweep / "budget=smoke,dataset=contactnets_cube,model=hybrid"  # this job's folder: another run was copied there
+    job = (
+        sweep / "budget=smoke,dataset=contactnets_cube,model=hybrid"
+    )  # this job's folder: another run was copied there
     shutil.copytree(finished_sysid_run, job)
     before = tree_digest(job)
     overrides = ["-m", "model=hybrid", "dataset=contactnets_cube", "budget=smoke", f"hydra.sweep.dir={sweep}"]
@@ -115,7 +118,9 @@ def test_resuming_a_finished_run_with_the_same_settings_is_accepted(finished_sys
     run_dir = _copy_run(finished_sysid_run, tmp_path)
     result = run_entry_point("train.py", [*SYSID, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert json.loads((run_dir / "fitted.json").read_text()) == json.loads((finished_sysid_run / "fitted.json").read_text())
+    assert json.loads((run_dir / "fitted.json").read_text()) == json.loads(
+        (finished_sysid_run / "fitted.json").read_text()
+    )
 
 
 # ---------------------------------------------------------------- resuming never executes anything
@@ -162,21 +167,34 @@ def test_a_checkpoint_that_is_itself_a_pickle_payload_is_refused_and_nothing_run
 
 def _valid_state() -> dict:
     return {
-        "restart": 1, "generation": 2, "evaluations": 24, "unstable": 0,
+        "restart": 1,
+        "generation": 2,
+        "evaluations": 24,
+        "unstable": 0,
         "results": [{"vector": [0.3, 0.2, 2000.0, 60.0], "val_loss": 0.5}],
-        "asked": torch.zeros((8, 4), dtype=torch.float64), "losses": torch.ones(8, dtype=torch.float64),
+        "asked": torch.zeros((8, 4), dtype=torch.float64),
+        "losses": torch.ones(8, dtype=torch.float64),
     }
 
 
 BAD_STATES = {
-    "pickled optimiser": (lambda s: s.update(optimizer=torch.frombuffer(bytearray(b"\x80\x02cos\nsystem\n"), dtype=torch.uint8)), "'optimizer'"),
+    "pickled optimiser": (
+        lambda s: s.update(optimizer=torch.frombuffer(bytearray(b"\x80\x02cos\nsystem\n"), dtype=torch.uint8)),
+        "'optimizer'",
+    ),
     "unknown field": (lambda s: s.update(extra=1), "field 'extra' is not part of the search state"),
     "missing field": (lambda s: s.pop("losses"), "field 'losses' is missing"),
-    "negative counter": (lambda s: s.update(generation=-1), "field 'generation' is -1 (expected a non-negative integer)"),
+    "negative counter": (
+        lambda s: s.update(generation=-1),
+        "field 'generation' is -1 (expected a non-negative integer)",
+    ),
     "float counter": (lambda s: s.update(restart=1.0), "field 'restart' is 1.0"),
     "results vs restarts": (lambda s: s.update(restart=3), "field 'results'"),
     "malformed result": (lambda s: s["results"][0].update(vector="rm -rf"), "field 'results[0]' is malformed"),
-    "asked as bytes": (lambda s: s.update(asked=torch.zeros(8, dtype=torch.uint8)), "field 'asked' is a torch.uint8 tensor"),
+    "asked as bytes": (
+        lambda s: s.update(asked=torch.zeros(8, dtype=torch.uint8)),
+        "field 'asked' is a torch.uint8 tensor",
+    ),
     "losses length": (lambda s: s.update(losses=torch.ones(7, dtype=torch.float64)), "field 'losses'"),
     "non-finite history": (lambda s: s["asked"].fill_(float("nan")), "field 'asked' holds NaN"),
     "not a dict": (lambda s: s.clear(), "field 'restart' is missing"),
@@ -195,7 +213,10 @@ def test_a_malformed_search_state_is_refused_by_field(case):
 
 def test_load_state_dict_never_unpickles(tmp_path):
     marker = tmp_path / "payload-ran"
-    state = {**_valid_state(), "optimizer": torch.frombuffer(bytearray(pickle.dumps(_CreatesFile(marker))), dtype=torch.uint8)}
+    state = {
+        **_valid_state(),
+        "optimizer": torch.frombuffer(bytearray(pickle.dumps(_CreatesFile(marker))), dtype=torch.uint8),
+    }
     with pytest.raises(ContactbenchError, match="unpickling"):
         NevergradSearch().load_state_dict(state)
     assert not marker.exists()
@@ -217,11 +238,17 @@ def _edit_meta(root: Path, edit) -> None:
 
 
 ESCAPING_PATHS = {
-    "split up and out": (lambda m: m["splits"].update(train="../../../../etc/passwd"), "field 'splits.train' is '../../../../etc/passwd'"),
+    "split up and out": (
+        lambda m: m["splits"].update(train="../../../../etc/passwd"),
+        "field 'splits.train' is '../../../../etc/passwd'",
+    ),
     "split absolute": (lambda m: m["splits"].update(val="/etc/passwd"), "field 'splits.val' is '/etc/passwd'"),
     "split windows absolute": (lambda m: m["splits"].update(val="C:\\\\Windows\\\\win.ini"), "field 'splits.val'"),
     "split empty": (lambda m: m["splits"].update(test=""), "field 'splits.test' is ''"),
-    "mesh up and out": (lambda m: m["bodies"][0].update(mesh="meshes/../../cube.obj"), r"bodies\[0\]: field 'mesh' is 'meshes/../../cube.obj'"),
+    "mesh up and out": (
+        lambda m: m["bodies"][0].update(mesh="meshes/../../cube.obj"),
+        r"bodies\[0\]: field 'mesh' is 'meshes/../../cube.obj'",
+    ),
 }
 
 
@@ -280,7 +307,12 @@ def test_bytes_that_are_not_an_npz_are_not_called_pickled(tmp_path, case):
 def test_an_escaping_split_path_is_one_clear_error_from_the_command_line(tmp_path):
     root = _dataset(tmp_path)
     _edit_meta(root, lambda m: m["splits"].update(test="../../../../etc/passwd"))
-    result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={root}", f"hydra.run.dir={tmp_path / 'eval'}"], tmp_path, timeout=120)
+    result = run_entry_point(
+        "evaluate.py",
+        ["dataset=recordings", f"recordings={root}", f"hydra.run.dir={tmp_path / 'eval'}"],
+        tmp_path,
+        timeout=120,
+    )
     assert_refused(result, str(root / "meta.json"), "field 'splits.test'", "inside the dataset folder")
 
 
@@ -288,13 +320,25 @@ def test_an_escaping_split_path_is_one_clear_error_from_the_command_line(tmp_pat
 
 
 BAD_SETTINGS = {
-    "negative sysid evaluations": (["model=sysid", "budget.sysid.evaluations=-16"], "budget.sysid.evaluations is -16 (expected a positive integer)"),
+    "negative sysid evaluations": (
+        ["model=sysid", "budget.sysid.evaluations=-16"],
+        "budget.sysid.evaluations is -16 (expected a positive integer)",
+    ),
     "negative gnn steps": (["budget.gnn.max_steps=-1"], "budget.gnn.max_steps is -1 (expected a positive integer)"),
-    "zero batch": (["budget.sysid.batch_trajectories=0"], "budget.sysid.batch_trajectories is 0 (expected a positive integer or null (all))"),
+    "zero batch": (
+        ["budget.sysid.batch_trajectories=0"],
+        "budget.sysid.batch_trajectories is 0 (expected a positive integer or null (all))",
+    ),
     "fractional restarts": (["budget.sysid.restarts=1.5"], "budget.sysid.restarts is 1.5"),
     "negative learning rate": (["budget.gnn.lr=-0.001"], "budget.gnn.lr is -0.001 (expected a positive number)"),
-    "negative friction": (["friction=-1"], "scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)"),
-    "restitution above one": (["dataset=bouncycubes", "restitution=1.5"], "scene 'bouncycubes': restitution is 1.5 (expected a coefficient from 0 to 1)"),
+    "negative friction": (
+        ["friction=-1"],
+        "scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)",
+    ),
+    "restitution above one": (
+        ["dataset=bouncycubes", "restitution=1.5"],
+        "scene 'bouncycubes': restitution is 1.5 (expected a coefficient from 0 to 1)",
+    ),
     "unknown solid": (["dataset=polyhedra", "faces=7"], "scene 'polyhedra': faces is 7 (expected one of"),
     "recordings unset": (["dataset=recordings"], "recordings is not set (expected recordings=... on the command line)"),
 }
@@ -320,17 +364,39 @@ def test_a_custom_variant_says_it_is_one(tmp_path, caplog):
 def test_a_direct_sysid_override_is_checked_by_the_module(small_recordings):
     from contactbench.models.sysid.module import SysIDModule
 
-    with pytest.raises(ContactbenchError, match=re.escape("model.module.evaluations is -16 (expected a positive integer)")):
-        SysIDModule(small_recordings, 6, evaluations=-16, restarts=1, num_workers=4, batch_trajectories=None, val_trajectories=None)
+    with pytest.raises(
+        ContactbenchError, match=re.escape("model.module.evaluations is -16 (expected a positive integer)")
+    ):
+        SysIDModule(
+            small_recordings,
+            6,
+            evaluations=-16,
+            restarts=1,
+            num_workers=4,
+            batch_trajectories=None,
+            val_trajectories=None,
+        )
 
 
 @pytest.mark.parametrize(
     "script, overrides, expected",
     [
         ("diagnose.py", [], "error: recordings is not set (expected recordings=... on the command line)"),
-        ("evaluate.py", ["dataset=recordings"], "error: recordings is not set (expected recordings=... on the command line)"),
-        ("train.py", ["model=sysid", "budget.sysid.evaluations=-16"], "error: budget.sysid.evaluations is -16 (expected a positive integer)"),
-        ("generate.py", ["friction=-1"], "error: scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)"),
+        (
+            "evaluate.py",
+            ["dataset=recordings"],
+            "error: recordings is not set (expected recordings=... on the command line)",
+        ),
+        (
+            "train.py",
+            ["model=sysid", "budget.sysid.evaluations=-16"],
+            "error: budget.sysid.evaluations is -16 (expected a positive integer)",
+        ),
+        (
+            "generate.py",
+            ["friction=-1"],
+            "error: scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)",
+        ),
     ],
 )
 def test_impossible_settings_are_one_line_from_the_command_line(tmp_path, script, overrides, expected):
@@ -343,7 +409,10 @@ def test_a_non_finite_metric_is_an_error_not_null(tmp_path):
     root = _dataset(tmp_path, n_frames=12)
     _edit_meta(root, lambda m: m.update(dt=1e300))  # valid by the format (a positive number), absurd in practice
     cfg = compose_config("evaluate", ["dataset=recordings", f"recordings={root}", "model=mujoco_default"], tmp_path)
-    with pytest.raises(ContactbenchError, match=r"meta.json: test metric '\w+' of model 'mujoco_default' is nan \(expected a finite number"):
+    with pytest.raises(
+        ContactbenchError,
+        match=r"meta.json: test metric '\w+' of model 'mujoco_default' is nan \(expected a finite number",
+    ):
         runs.evaluate(cfg, tmp_path / "eval")
     assert not (tmp_path / "eval" / "metrics.json").exists()
 
@@ -351,7 +420,9 @@ def test_a_non_finite_metric_is_an_error_not_null(tmp_path):
 def test_a_binary_mesh_file_is_one_clear_error(tmp_path):
     root = _dataset(tmp_path)
     (root / "meshes" / "cube.obj").write_bytes(bytes(range(256)) * 4)
-    with pytest.raises(RecordingsError, match=r"cube.obj: not a text OBJ file \(byte 128 is not UTF-8.*\(meta.json bodies\[0\].mesh\)"):
+    with pytest.raises(
+        RecordingsError, match=r"cube.obj: not a text OBJ file \(byte 128 is not UTF-8.*\(meta.json bodies\[0\].mesh\)"
+    ):
         read_recordings(root, ["train"])
 
 
@@ -383,7 +454,9 @@ print(json.dumps({"outcome": outcome, "peak_mb": after / 2**20, "extra_mb": (aft
 
 def read_in_subprocess(root: Path, timeout: float = 60) -> dict:
     """read_recordings(root, ['train']) in a fresh interpreter: its outcome and peak memory (MB, all and added)."""
-    result = subprocess.run([sys.executable, "-c", _PEAK_PROBE, str(root)], capture_output=True, text=True, timeout=timeout)
+    result = subprocess.run(
+        [sys.executable, "-c", _PEAK_PROBE, str(root)], capture_output=True, text=True, timeout=timeout
+    )
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-3000:]
     return json.loads(result.stdout.strip().splitlines()[-1])
 
@@ -425,8 +498,14 @@ def _lying_directory(path: Path) -> None:
 
 HUGE = {
     "deflate bomb": (_deflate_bomb, "field 'poses' inflates from"),
-    "header claims 10^12 trajectories": (_huge_header, "field 'poses': its .npy header declares shape (1000000000000, 6, 2, 7)"),
-    "zip directory claims 2 GB": (_lying_directory, "field 'poses': its zip entry claims 2147483648 compressed bytes, more than the file's"),
+    "header claims 10^12 trajectories": (
+        _huge_header,
+        "field 'poses': its .npy header declares shape (1000000000000, 6, 2, 7)",
+    ),
+    "zip directory claims 2 GB": (
+        _lying_directory,
+        "field 'poses': its zip entry claims 2147483648 compressed bytes, more than the file's",
+    ),
 }
 PEAK_EXTRA_MB = 64  # what reading a refused split may add to the interpreter's own memory
 
@@ -439,7 +518,9 @@ def test_a_split_claiming_huge_arrays_is_refused_before_allocating(tmp_path, cas
     assert (root / "train.npz").stat().st_size < 4 * 2**20
     probe = read_in_subprocess(root)
     record_property("peak_rss_mb", round(probe["peak_mb"], 1))
-    assert probe["outcome"].startswith(f"error: {root / 'train.npz'}: ") and expected in probe["outcome"], probe["outcome"]
+    assert probe["outcome"].startswith(f"error: {root / 'train.npz'}: ") and expected in probe["outcome"], probe[
+        "outcome"
+    ]
     assert "\n" not in probe["outcome"]
     assert probe["extra_mb"] < PEAK_EXTRA_MB, probe
 
@@ -450,13 +531,34 @@ def test_a_valid_split_still_reads_under_the_probe(tmp_path):
 
 
 MEMBER_LIES = {
-    "data shorter than the header says": (lambda a: a.update(poses=_npy_header((2, 6, 2, 7)) + bytes(8)), "field 'poses': its .npy header declares shape (2, 6, 2, 7)"),
-    "data longer than the header says": (lambda a: a.update(poses=_npy_header((1, 6, 1, 7)) + bytes(8 * 2 * 6 * 7)), "field 'poses': its .npy header declares shape (1, 6, 1, 7)"),
-    "negative shape": (lambda a: a.update(poses=_npy_header((-2, -6, 1, 7)) + bytes(8 * 84)), "expected non-negative sizes"),
-    "structured dtype": (lambda a: a.update(poses=_npy_header((2,), [('a', '<f8')]) + bytes(16)), "field 'poses' has dtype"),
-    "string dtype": (lambda a: a.update(lengths=_npy_header((2,), "<U4") + bytes(32)), "field 'lengths' has dtype <U4 (expected a plain numeric array)"),
-    "header too long": (lambda a: a.update(poses=b"\x93NUMPY\x01\x00" + struct.pack("<H", 60000) + b" " * 60000), "field 'poses' is not a readable .npy array"),
-    "unknown npy version": (lambda a: a.update(poses=b"\x93NUMPY\x09\x00" + bytes(100)), "unsupported .npy format version (9, 0)"),
+    "data shorter than the header says": (
+        lambda a: a.update(poses=_npy_header((2, 6, 2, 7)) + bytes(8)),
+        "field 'poses': its .npy header declares shape (2, 6, 2, 7)",
+    ),
+    "data longer than the header says": (
+        lambda a: a.update(poses=_npy_header((1, 6, 1, 7)) + bytes(8 * 2 * 6 * 7)),
+        "field 'poses': its .npy header declares shape (1, 6, 1, 7)",
+    ),
+    "negative shape": (
+        lambda a: a.update(poses=_npy_header((-2, -6, 1, 7)) + bytes(8 * 84)),
+        "expected non-negative sizes",
+    ),
+    "structured dtype": (
+        lambda a: a.update(poses=_npy_header((2,), [("a", "<f8")]) + bytes(16)),
+        "field 'poses' has dtype",
+    ),
+    "string dtype": (
+        lambda a: a.update(lengths=_npy_header((2,), "<U4") + bytes(32)),
+        "field 'lengths' has dtype <U4 (expected a plain numeric array)",
+    ),
+    "header too long": (
+        lambda a: a.update(poses=b"\x93NUMPY\x01\x00" + struct.pack("<H", 60000) + b" " * 60000),
+        "field 'poses' is not a readable .npy array",
+    ),
+    "unknown npy version": (
+        lambda a: a.update(poses=b"\x93NUMPY\x09\x00" + bytes(100)),
+        "unsupported .npy format version (9, 0)",
+    ),
 }
 
 
@@ -500,11 +602,20 @@ def test_stale_staging_folders_are_removed_at_the_next_write_and_only_those(tmp_
             (tmp_path / name / "meshes").mkdir(parents=True)
             (tmp_path / name / "train.npz").write_bytes(b"half written")
         day_old = time.time() - atomic.STALE_AFTER_S - 60
-        for path in [tmp_path / names["old naming, a day old"], *(tmp_path / names["old naming, a day old"]).rglob("*")]:
+        for path in [
+            tmp_path / names["old naming, a day old"],
+            *(tmp_path / names["old naming, a day old"]).rglob("*"),
+        ]:
             os.utime(path, (day_old, day_old))
         write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))
         left = {label for label, name in names.items() if (tmp_path / name).exists()}
-        assert left == {"live writer", "other host, recent", "old naming, recent", "another dataset's", "not our pattern"}
+        assert left == {
+            "live writer",
+            "other host, recent",
+            "old naming, recent",
+            "another dataset's",
+            "not our pattern",
+        }
         assert read_recordings(root).splits["train"].n_trajectories == 2
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".ds.") and p.name not in names.values()]
     finally:
@@ -526,7 +637,12 @@ def test_a_generation_killed_during_its_final_write_is_cleaned_by_the_next(tmp_p
         "recordings.write_recordings(sys.argv[1], falling_cubes())\n"
     )
     root = tmp_path / "friction=0.5"
-    result = subprocess.run([sys.executable, "-c", script, str(root), str(Path(__file__).parent)], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", script, str(root), str(Path(__file__).parent)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == -9, result.stderr[-2000:]
     leftovers = [p for p in tmp_path.iterdir() if p.name.startswith(".friction=0.5.") and p.name.endswith(".tmp")]
     assert len(leftovers) == 1 and not root.exists()
@@ -539,7 +655,12 @@ def test_too_short_trajectories_name_the_file_and_write_nothing(tmp_path):
     write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))  # 6 frames: all context, nothing to predict
     run_dir = tmp_path / "run"
     cfg = compose_config("train", ["model=mujoco_default", "dataset=recordings", f"recordings={root}"], tmp_path)
-    with pytest.raises(RecordingsError, match=re.escape(f"{root / 'train.npz'}: field 'lengths': trajectory 0 has 6 frames (2 of 2 have fewer than 7; expected at least 7: context_frames=6")):
+    with pytest.raises(
+        RecordingsError,
+        match=re.escape(
+            f"{root / 'train.npz'}: field 'lengths': trajectory 0 has 6 frames (2 of 2 have fewer than 7; expected at least 7: context_frames=6"
+        ),
+    ):
         runs.train(cfg, run_dir)
     assert not run_dir.exists()
 
@@ -549,7 +670,12 @@ def test_too_short_trajectories_are_one_line_from_the_command_line(tmp_path):
     write_recordings(root, falling_cubes(n_trajectories=2, n_frames=6))
     run_dir = tmp_path / "eval"
     run_dir.mkdir()
-    result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={root}", "model=mujoco_default", f"hydra.run.dir={run_dir}"], tmp_path, timeout=120)
+    result = run_entry_point(
+        "evaluate.py",
+        ["dataset=recordings", f"recordings={root}", "model=mujoco_default", f"hydra.run.dir={run_dir}"],
+        tmp_path,
+        timeout=120,
+    )
     assert_refused(result, str(root / "test.npz"), "field 'lengths'", "expected at least 7")
     assert tree_digest(run_dir) == {}
 
@@ -591,12 +717,17 @@ def test_the_readme_diagnose_example_with_commas_parses():
         arguments = shlex.split(line.split("  #")[0])[2:]  # what the shell hands to diagnose.py
         cfg = compose_config("diagnose", arguments, Path("/tmp"))
         assert cfg.recordings == "data/frictioncubes/friction=0.5,effects=floor_tilt,strength=2"
-    assert compose_config("diagnose", ["recordings='my data/a,b=1 \\'c\\''"], Path("/tmp")).recordings == "my data/a,b=1 'c'"
+    assert (
+        compose_config("diagnose", ["recordings='my data/a,b=1 \\'c\\''"], Path("/tmp")).recordings
+        == "my data/a,b=1 'c'"
+    )
 
 
 # ---------------------------------------------------------------- property-based fuzzing of the reader
 
-from hypothesis import HealthCheck, given, settings as hypothesis_settings, strategies as st  # noqa: E402
+from hypothesis import HealthCheck, given  # noqa: E402
+from hypothesis import settings as hypothesis_settings
+from hypothesis import strategies as st
 
 
 def _valid_files() -> dict[str, bytes]:
@@ -604,18 +735,45 @@ def _valid_files() -> dict[str, bytes]:
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder) / "ds"
         write_recordings(root, falling_cubes(n_trajectories=2, n_frames=5, n_bodies=2))
-        return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file() and p.name != "val.npz" and p.name != "test.npz"}
+        return {
+            str(p.relative_to(root)): p.read_bytes()
+            for p in root.rglob("*")
+            if p.is_file() and p.name != "val.npz" and p.name != "test.npz"
+        }
 
 
 VALID = _valid_files()
 JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(min_value=-(10**30), max_value=10**30) | st.floats(allow_nan=True, allow_infinity=True)
-    | st.sampled_from(["", "train.npz", "../train.npz", "/etc/passwd", "meshes/cube.obj", "rigid-contact-recordings", "a\x00b", "\\x"]),
-    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.sampled_from(["train", "name", "mesh", "mass", "x"]), children, max_size=3),
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(10**30), max_value=10**30)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.sampled_from(
+        ["", "train.npz", "../train.npz", "/etc/passwd", "meshes/cube.obj", "rigid-contact-recordings", "a\x00b", "\\x"]
+    ),
+    lambda children: (
+        st.lists(children, max_size=4)
+        | st.dictionaries(st.sampled_from(["train", "name", "mesh", "mass", "x"]), children, max_size=3)
+    ),
     max_leaves=6,
 )
-META_PLACES = ["format", "version", "name", "dt", "gravity", "floor_z", "bodies", "splits", "splits.train",
-               "bodies.0", "bodies.0.mesh", "bodies.0.mass", "bodies.0.inertia_diagonal", "bodies.1.name", "gravity.2"]
+META_PLACES = [
+    "format",
+    "version",
+    "name",
+    "dt",
+    "gravity",
+    "floor_z",
+    "bodies",
+    "splits",
+    "splits.train",
+    "bodies.0",
+    "bodies.0.mesh",
+    "bodies.0.mass",
+    "bodies.0.inertia_diagonal",
+    "bodies.1.name",
+    "gravity.2",
+]
 
 
 def _edit_place(meta: dict, place: str, value, delete: bool) -> None:
@@ -643,14 +801,41 @@ def _zipped(members: dict[str, bytes], compression: int) -> bytes:
     return buffer.getvalue()
 
 
-BYTE_EDITS = st.lists(st.tuples(st.integers(min_value=0, max_value=10**6), st.integers(min_value=0, max_value=255)), min_size=1, max_size=6)
+BYTE_EDITS = st.lists(
+    st.tuples(st.integers(min_value=0, max_value=10**6), st.integers(min_value=0, max_value=255)),
+    min_size=1,
+    max_size=6,
+)
 MUTATIONS = st.one_of(
     st.tuples(st.just("meta field"), st.sampled_from(META_PLACES), JSON_VALUES, st.booleans()),
     st.tuples(st.just("npz bytes"), BYTE_EDITS, st.integers(min_value=0, max_value=10**6)),  # flips, then cut at
-    st.tuples(st.just("npy member"), st.sampled_from(["poses.npy", "lengths.npy", "velocities.npy", "source_index.npy"]), BYTE_EDITS,
-              st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED])),
-    st.tuples(st.just("npy header"), st.sampled_from(["poses.npy", "lengths.npy"]),
-              st.sampled_from(["shape", "descr", "fortran_order"]), st.sampled_from(["(1000000000000, 5, 2, 7)", "(-1,)", "()", "'<f4'", "'|O'", "'>f8'", "True", "(2, 5, 2, 7, 1)", "'<c16'", "'<i8'", "(0, 5, 2, 7)", "[1]"])),
+    st.tuples(
+        st.just("npy member"),
+        st.sampled_from(["poses.npy", "lengths.npy", "velocities.npy", "source_index.npy"]),
+        BYTE_EDITS,
+        st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED]),
+    ),
+    st.tuples(
+        st.just("npy header"),
+        st.sampled_from(["poses.npy", "lengths.npy"]),
+        st.sampled_from(["shape", "descr", "fortran_order"]),
+        st.sampled_from(
+            [
+                "(1000000000000, 5, 2, 7)",
+                "(-1,)",
+                "()",
+                "'<f4'",
+                "'|O'",
+                "'>f8'",
+                "True",
+                "(2, 5, 2, 7, 1)",
+                "'<c16'",
+                "'<i8'",
+                "(0, 5, 2, 7)",
+                "[1]",
+            ]
+        ),
+    ),
     st.tuples(st.just("mesh bytes"), BYTE_EDITS),
 )
 
@@ -686,7 +871,11 @@ def _apply(files: dict[str, bytes], mutation) -> dict[str, bytes]:
         _, member, field, value = mutation
         members = _members(files["train.npz"])
         array = np.lib.format.read_array(io.BytesIO(members[member]))
-        header = {"descr": repr(np.lib.format.dtype_to_descr(array.dtype)), "fortran_order": "False", "shape": repr(array.shape)}
+        header = {
+            "descr": repr(np.lib.format.dtype_to_descr(array.dtype)),
+            "fortran_order": "False",
+            "shape": repr(array.shape),
+        }
         header[field] = value  # the header is Python literal text: written as is, right or wrong
         text = "{" + "".join(f"'{key}': {text}, " for key, text in header.items()) + "}"
         text += " " * (-(len(text) + 11) % 64) + "\n"
@@ -696,7 +885,9 @@ def _apply(files: dict[str, bytes], mutation) -> dict[str, bytes]:
     return files
 
 
-@hypothesis_settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow], database=None)
+@hypothesis_settings(
+    max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow], database=None
+)
 @given(MUTATIONS)
 def test_fuzzed_datasets_read_or_give_one_recordings_error(mutation):
     with tempfile.TemporaryDirectory() as folder:

@@ -1,4 +1,5 @@
 """Tests of the hybrid contact model: LCP against hand results, inverse dynamics, features, rollout, Lightning."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -6,6 +7,7 @@ import pybullet
 import pytest
 import pytorch_lightning as pl
 import torch
+from conftest import cube_mesh, falling_cubes
 from pytorch_lightning.callbacks import EarlyStopping, ModelCheckpoint
 
 from contactbench import rotations
@@ -17,13 +19,14 @@ from contactbench.models.hybrid import (
     HybridModule,
     SingleBodyError,
     compare_with_bullet_contacts,
+    dynamics,
+    features,
+    inverse,
+    lcp,
 )
-from contactbench.models.hybrid import dynamics, features, inverse, lcp
 from contactbench.models.hybrid.dynamics import State
 from contactbench.models.hybrid.module import training_arrays
 from contactbench.recordings import FORMAT, VERSION, Recordings, Split
-
-from conftest import cube_mesh, falling_cubes
 
 MASS = 0.37
 WIDTH = 0.1
@@ -111,7 +114,9 @@ def random_contact_states(count: int, seed: int) -> State:
     rng = np.random.default_rng(seed)
     orientation = rotations.uniform_random(rng, count)
     lowest = rotations.rotate(orientation[:, None], cube_mesh(WIDTH).vertices)[..., 2].min(axis=-1)
-    position = np.concatenate([rng.uniform(-1, 1, (count, 2)), (-lowest + rng.uniform(-0.003, 0.003, count))[:, None]], axis=-1)
+    position = np.concatenate(
+        [rng.uniform(-1, 1, (count, 2)), (-lowest + rng.uniform(-0.003, 0.003, count))[:, None]], axis=-1
+    )
     return State(position, orientation, rng.uniform(-1, 1, (count, 3)), rng.uniform(-8, 8, (count, 3)))
 
 
@@ -143,7 +148,9 @@ def test_lemke_matches_a_hand_solved_lcp():
     # z1 active, z2 inactive: w1 = 2 z1 + z2 - 2 = 0 -> z1 = 1; w2 = z1 + 2 z2 + 1 = 2 > 0.
     solution = lcp.solve_lemke(np.array([[2.0, 1.0], [1.0, 2.0]]), np.array([-2.0, 1.0]))
     np.testing.assert_allclose(solution, [1.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(lcp.solve_pgs(np.array([[[2.0, 1.0], [1.0, 2.0]]]), np.array([[-2.0, 1.0]]))[0], [1.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(
+        lcp.solve_pgs(np.array([[[2.0, 1.0], [1.0, 2.0]]]), np.array([[-2.0, 1.0]]))[0], [1.0, 0.0], atol=1e-9
+    )
 
 
 def test_sliding_cube_decelerates_as_the_hand_result(scene):
@@ -206,7 +213,12 @@ def test_dissipative_friction_never_adds_kinetic_energy(scene):
     after = kinetic_energy(states, scene, linear + linear_change, angular + angular_change)
     assert np.all(after <= before + 1e-12)
     scale = np.linalg.norm(kept, axis=-1) / np.linalg.norm(friction, axis=-1)
-    assert np.all(scale <= 1.0 + 1e-12) and (scale == 0.0).any() and (scale > 0.99).any() and ((scale > 0.01) & (scale < 0.99)).any()
+    assert (
+        np.all(scale <= 1.0 + 1e-12)
+        and (scale == 0.0).any()
+        and (scale > 0.99).any()
+        and ((scale > 0.01) & (scale < 0.99)).any()
+    )
 
 
 # ---------------------------------------------------------------- inverse dynamics
@@ -225,11 +237,15 @@ def window_split(state: State, next_linear: np.ndarray, next_angular: np.ndarray
     return Split(poses[:, :, None], np.full(len(poses), 3))
 
 
-def applied_impulse(state: State, scene: dynamics.Scene, normal: np.ndarray, friction_forces: np.ndarray, torsion: float):
+def applied_impulse(
+    state: State, scene: dynamics.Scene, normal: np.ndarray, friction_forces: np.ndarray, torsion: float
+):
     """Body impulse of normal impulses [V] and tangential impulses [V, 3] at the vertices, plus a torsional impulse."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)[0]
     normal_part = dynamics.normal_wrench(offsets[None], normal[None])[0]
-    friction_part = np.concatenate([friction_forces.sum(axis=0), np.cross(offsets, friction_forces).sum(axis=0) + [0.0, 0.0, torsion]])
+    friction_part = np.concatenate(
+        [friction_forces.sum(axis=0), np.cross(offsets, friction_forces).sum(axis=0) + [0.0, 0.0, torsion]]
+    )
     return normal_part, friction_part
 
 
@@ -270,7 +286,9 @@ def test_inverse_dynamics_recovers_a_corner_impact_per_vertex(scene):
     normal_part, friction_part = applied_impulse(state, scene, normal, friction_forces, torsion=0.0)
     linear, angular = dynamics.unconstrained_velocities(state, scene)
     change = dynamics.velocity_change(state.orientation, (normal_part + friction_part)[None], scene.body)
-    transitions = inverse.transitions_from_split(window_split(state, linear + change[0], angular + change[1], scene), scene, ContactSettings())
+    transitions = inverse.transitions_from_split(
+        window_split(state, linear + change[0], angular + change[1], scene), scene, ContactSettings()
+    )
     np.testing.assert_allclose(transitions.normal[0], normal, atol=1e-12)
     np.testing.assert_allclose(transitions.friction[0], friction_part, atol=1e-12)
 
@@ -292,17 +310,29 @@ def bullet_cube_tosses(friction: float, tosses: int = 3, frames: int = 90) -> Re
     try:
         pybullet.setPhysicsEngineParameter(fixedTimeStep=DT, numSubSteps=0, physicsClientId=client)
         pybullet.setGravity(0.0, 0.0, -G, physicsClientId=client)
-        floor = pybullet.createMultiBody(0.0, pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client), physicsClientId=client)
+        floor = pybullet.createMultiBody(
+            0.0, pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client), physicsClientId=client
+        )
         shape = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[HALF] * 3, physicsClientId=client)
         cube = pybullet.createMultiBody(MASS, shape, physicsClientId=client)
         for body in (floor, cube):
-            pybullet.changeDynamics(body, -1, lateralFriction=friction, restitution=0.0, linearDamping=0.0, angularDamping=0.0, physicsClientId=client)
+            pybullet.changeDynamics(
+                body,
+                -1,
+                lateralFriction=friction,
+                restitution=0.0,
+                linearDamping=0.0,
+                angularDamping=0.0,
+                physicsClientId=client,
+            )
         names = inverse.BULLET_CONTACT_EXTRAS
         poses = np.zeros((tosses, frames, 1, 7))
         extras = {name: np.zeros((tosses, frames, 1, 3)) for name in names}
         for toss in range(tosses):
             orientation = rotations.uniform_random(rng, 1)[0]
-            pybullet.resetBasePositionAndOrientation(cube, [0.0, 0.0, 0.15], rotations.wxyz_to_xyzw(orientation), physicsClientId=client)
+            pybullet.resetBasePositionAndOrientation(
+                cube, [0.0, 0.0, 0.15], rotations.wxyz_to_xyzw(orientation), physicsClientId=client
+            )
             pybullet.resetBaseVelocity(cube, [1.0, -0.5, 0.0], list(rng.uniform(-5, 5, 3)), physicsClientId=client)
             for frame in range(frames):
                 if frame:
@@ -312,7 +342,10 @@ def bullet_cube_tosses(friction: float, tosses: int = 3, frames: int = 90) -> Re
                         arm = np.array(point[5]) - centre  # contact points are found before the step
                         normal_force = point[9] * np.array(point[7])
                         friction_force = point[10] * np.array(point[11]) + point[12] * np.array(point[13])
-                        for name, value in zip(names, (normal_force, friction_force, np.cross(arm, normal_force), np.cross(arm, friction_force))):
+                        for name, value in zip(
+                            names,
+                            (normal_force, friction_force, np.cross(arm, normal_force), np.cross(arm, friction_force)),
+                        ):
                             extras[name][toss, frame, 0] += value
                 position, orientation_xyzw = pybullet.getBasePositionAndOrientation(cube, physicsClientId=client)
                 poses[toss, frame, 0] = np.concatenate([position, rotations.xyzw_to_wxyz(np.array(orientation_xyzw))])
@@ -326,7 +359,10 @@ def test_inverse_dynamics_agrees_with_pybullet_contact_forces():
     assert report["friction_force"]["reference_rms"] > 0.1 and report["normal_force"]["reference_rms"] > 1.0
     for name in ("contact_force", "contact_torque", "normal_force", "friction_force"):
         assert report[name]["relative_error"] < 1e-8, name
-    for name in ("normal_torque", "friction_torque"):  # the torque split is a model (see inverse.py), close but not exact
+    for name in (
+        "normal_torque",
+        "friction_torque",
+    ):  # the torque split is a model (see inverse.py), close but not exact
         assert report[name]["relative_error"] < 0.02 and report[name]["correlation"] > 0.999, name
 
 
@@ -378,7 +414,9 @@ def rotated_about_vertical(split: Split, angle: float, shift: np.ndarray) -> Spl
 def test_features_and_targets_are_unchanged_by_turning_the_scene_about_the_vertical(scene):
     split = simulated_tosses(mu=0.5, tosses=4, frames=40, seed=5)
     inputs, targets = training_arrays(split, scene, ContactSettings())
-    turned_inputs, turned_targets = training_arrays(rotated_about_vertical(split, 1.1, np.array([0.4, -0.7, 0.0])), scene, ContactSettings())
+    turned_inputs, turned_targets = training_arrays(
+        rotated_about_vertical(split, 1.1, np.array([0.4, -0.7, 0.0])), scene, ContactSettings()
+    )
     assert len(inputs) > 50
     np.testing.assert_allclose(turned_inputs, inputs, atol=1e-9)
     np.testing.assert_allclose(turned_targets, targets, atol=1e-6 * np.abs(targets).max())
@@ -427,7 +465,9 @@ def test_multi_body_dataset_is_refused_at_once():
 
 
 def test_data_loaders_give_every_transition_once_in_whole_batches():
-    splits = {name: simulated_tosses(mu=0.5, tosses=3, frames=30, seed=seed) for seed, name in enumerate(("train", "val"))}
+    splits = {
+        name: simulated_tosses(mu=0.5, tosses=3, frames=30, seed=seed) for seed, name in enumerate(("train", "val"))
+    }
     datamodule = HybridDataModule(cube_recordings(splits), context_frames=6, batch_size=16)
     datamodule.setup("fit")
     for name, loader in (("train", datamodule.train_dataloader()), ("val", datamodule.val_dataloader())):
@@ -444,7 +484,10 @@ def test_data_loaders_give_every_transition_once_in_whole_batches():
 
 def test_tiny_training_run_checkpoints_reloads_and_rolls_out(tmp_path):
     torch.manual_seed(0)
-    splits = {name: simulated_tosses(mu=0.5, tosses=4, frames=30, seed=seed) for seed, name in enumerate(("train", "val", "test"))}
+    splits = {
+        name: simulated_tosses(mu=0.5, tosses=4, frames=30, seed=seed)
+        for seed, name in enumerate(("train", "val", "test"))
+    }
     recordings = cube_recordings(splits)
     datamodule = HybridDataModule(recordings, context_frames=6, batch_size=64)
     module = HybridModule(recordings, context_frames=6, hidden=(32, 16, 8))

@@ -1,10 +1,11 @@
 """Scale-out: the cluster launcher config composes to Slurm, and the same sweep runs through submitit locally."""
+
 from __future__ import annotations
 
 from hydra import compose, initialize_config_dir
+from test_pipeline import run_entry_point
 
 from contactbench.config import CONFIG_DIR
-from test_pipeline import run_entry_point
 
 
 def test_cluster_and_local_launcher_configs_compose():
@@ -18,8 +19,16 @@ def test_cluster_and_local_launcher_configs_compose():
 def test_a_sweep_runs_through_submitit_local(tmp_path):
     result = run_entry_point(
         "train.py",
-        ["-m", "hydra/launcher=submitit_local", "model=mujoco_default", "variant=frictioncubes_0,frictioncubes_1", "budget=smoke", "test=true",
-         "generation.split_sizes={train:6,val:4,test:4}", f"hydra.sweep.dir={tmp_path}/sweep"],
+        [
+            "-m",
+            "hydra/launcher=submitit_local",
+            "model=mujoco_default",
+            "variant=frictioncubes_0,frictioncubes_1",
+            "budget=smoke",
+            "test=true",
+            "generation.split_sizes={train:6,val:4,test:4}",
+            f"hydra.sweep.dir={tmp_path}/sweep",
+        ],
         tmp_path,
         timeout=300,
     )

@@ -1,4 +1,5 @@
 """Hand-made checks of the metrics: pose errors, floor and inter-body penetration, collisions, aggregation, eq. (1)."""
+
 from __future__ import annotations
 
 import itertools
@@ -8,8 +9,8 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from contactbench import metrics, rotations
-from contactbench.kinematics import world_vertices
 from contactbench.generation.solids import WIDTH, convex_mesh, solid
+from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 
 CUBE = solid(6)  # 10.48 cm cube centred on its mesh frame
@@ -52,7 +53,9 @@ def test_floor_penetration_and_lowest_vertex_height_use_the_lowest_mesh_vertex()
     floor_z = -0.002
     sunk = pose([0.0, 0.0, floor_z + WIDTH / 2 - 0.01])
     # Resting on an edge: a cube turned 45 degrees about x reaches WIDTH / sqrt(2) below its centre.
-    on_edge = pose([0.0, 0.0, floor_z + WIDTH / np.sqrt(2) + 0.003], rotations.from_axis_angle(np.array([1.0, 0, 0]), np.pi / 4))
+    on_edge = pose(
+        [0.0, 0.0, floor_z + WIDTH / np.sqrt(2) + 0.003], rotations.from_axis_angle(np.array([1.0, 0, 0]), np.pi / 4)
+    )
     poses = np.stack([sunk, on_edge])[:, None]  # [2 frames, 1 body, 7]
     np.testing.assert_allclose(metrics.floor_penetration(poses, [CUBE], floor_z)[:, 0], [0.01, 0.0], atol=1e-12)
     np.testing.assert_allclose(metrics.lowest_vertex_height(poses, [CUBE], floor_z)[:, 0], [-0.01, 0.003], atol=1e-12)
@@ -63,11 +66,21 @@ def test_configuration_error_broadcasts_over_a_candidate_axis_and_matches_a_loop
     n_candidates, n_trajectories, n_frames, n_bodies = 4, 3, 5, 2
     widths = np.array([0.1, 0.25])
     true = np.concatenate(
-        [rng.normal(size=(n_trajectories, n_frames, n_bodies, 3)), rotations.uniform_random(rng, n_trajectories * n_frames * n_bodies).reshape(n_trajectories, n_frames, n_bodies, 4)],
+        [
+            rng.normal(size=(n_trajectories, n_frames, n_bodies, 3)),
+            rotations.uniform_random(rng, n_trajectories * n_frames * n_bodies).reshape(
+                n_trajectories, n_frames, n_bodies, 4
+            ),
+        ],
         axis=-1,
     )
     pred = np.concatenate(
-        [rng.normal(size=(n_candidates, n_trajectories, n_frames, n_bodies, 3)), rotations.uniform_random(rng, n_candidates * n_trajectories * n_frames * n_bodies).reshape(n_candidates, n_trajectories, n_frames, n_bodies, 4)],
+        [
+            rng.normal(size=(n_candidates, n_trajectories, n_frames, n_bodies, 3)),
+            rotations.uniform_random(rng, n_candidates * n_trajectories * n_frames * n_bodies).reshape(
+                n_candidates, n_trajectories, n_frames, n_bodies, 4
+            ),
+        ],
         axis=-1,
     )
     batched = metrics.configuration_error(true, pred, widths)
@@ -167,13 +180,20 @@ def test_prefilter_does_not_change_depths_or_touches():
     n_frames = 400
     spread = rng.uniform(0.02, 0.3, size=(n_frames, 1, 1))
     poses = np.concatenate(
-        [rng.normal(size=(n_frames, 4, 3)) * spread, rotations.uniform_random(rng, n_frames * 4).reshape(n_frames, 4, 4)], axis=-1
+        [
+            rng.normal(size=(n_frames, 4, 3)) * spread,
+            rotations.uniform_random(rng, n_frames * 4).reshape(n_frames, 4, 4),
+        ],
+        axis=-1,
     )
     geometries = [metrics._convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
     tolerance = 0.01
     filtered = metrics._pairwise_separations(poses, geometries, cutoff=tolerance)
     full = np.stack(
-        [metrics.pair_separation(poses[:, a], poses[:, b], meshes[a], meshes[b]) for a, b in itertools.combinations(range(4), 2)],
+        [
+            metrics.pair_separation(poses[:, a], poses[:, b], meshes[a], meshes[b])
+            for a, b in itertools.combinations(range(4), 2)
+        ],
         axis=-1,
     )
     skipped = np.isinf(filtered)

@@ -1,4 +1,5 @@
 """MuJoCo scene building and batched rollouts checked against closed-form physics and the recordings conventions."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,7 +19,20 @@ from contactbench.sim.rollout import MujocoRollouts, mechanical_energy, rollout_
 CUBE_DATA = Path(__file__).resolve().parents[1] / "assets" / "contactnets_cube"
 GRAVITY = np.array([0.0, 0.0, -9.81])
 BOX_FACES = np.array(
-    [[0, 3, 2], [0, 1, 3], [4, 7, 5], [4, 6, 7], [0, 5, 1], [0, 4, 5], [2, 7, 6], [2, 3, 7], [0, 6, 4], [0, 2, 6], [1, 7, 3], [1, 5, 7]]
+    [
+        [0, 3, 2],
+        [0, 1, 3],
+        [4, 7, 5],
+        [4, 6, 7],
+        [0, 5, 1],
+        [0, 4, 5],
+        [2, 7, 6],
+        [2, 3, 7],
+        [0, 6, 4],
+        [0, 2, 6],
+        [1, 7, 3],
+        [1, 5, 7],
+    ]
 )  # corner index 4x + 2y + z; counter-clockwise seen from outside
 
 
@@ -44,8 +58,14 @@ def scene(
             body["inertia_diagonal"] = list(inertia_diagonals[k])
         bodies.append(body)
     meta = {
-        "format": "rigid-contact-recordings", "version": 1, "name": "test-scene", "dt": dt,
-        "gravity": list(map(float, gravity)), "floor_z": floor_z, "bodies": bodies, "splits": {"train": "train.npz"},
+        "format": "rigid-contact-recordings",
+        "version": 1,
+        "name": "test-scene",
+        "dt": dt,
+        "gravity": list(map(float, gravity)),
+        "floor_z": floor_z,
+        "bodies": bodies,
+        "splits": {"train": "train.npz"},
     }
     poses = np.zeros((1, 1, len(meshes), 7))
     poses[..., 3] = 1.0
@@ -118,7 +138,10 @@ def test_drop_and_bounce_never_gains_energy():
     tilt = rotations.from_axis_angle(np.array([1.0, 0.5, 0.0]), 0.6)
     start = np.concatenate([[0.0, 0.0, 0.3], tilt])[None, None]
     velocity = np.array([[[0.4, 0.0, -0.5, 0.0, 0.0, 4.0]]])
-    params = [ContactParameters((0.5,), 0.5, stiffness, damping) for stiffness, damping in [(1e3, 10.0), (1e4, 50.0), (3e2, 5.0)]]
+    params = [
+        ContactParameters((0.5,), 0.5, stiffness, damping)
+        for stiffness, damping in [(1e3, 10.0), (1e4, 50.0), (3e2, 5.0)]
+    ]
     result = MujocoRollouts(data, nthread=1).simulate(params, start, velocity, 300)
     energy = mechanical_energy(data, result.poses[:, 0], result.velocities[:, 0])
     initial = mechanical_energy(data, start[0], velocity[0])
@@ -157,7 +180,10 @@ def test_spin_about_world_axis_with_offset_centre_of_mass():
     # The centre of mass rests, so the mesh-frame origin moves at omega x (origin - com).
     start_velocity = np.concatenate([np.cross(omega, origin - com_world), omega])
     result = MujocoRollouts(data, nthread=1).simulate(
-        ContactParameters.mujoco_default(1), np.concatenate([origin, q0])[None, None], start_velocity[None, None], n_steps
+        ContactParameters.mujoco_default(1),
+        np.concatenate([origin, q0])[None, None],
+        start_velocity[None, None],
+        n_steps,
     )
     poses, velocities = result.poses[0, :, :, 0], result.velocities[0, :, :, 0]
     times = dt * np.arange(1, n_steps + 1)

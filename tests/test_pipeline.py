@@ -1,4 +1,5 @@
 """The real pipeline, composed with Hydra's compose API as the entry points compose it, on budget=smoke."""
+
 from __future__ import annotations
 
 import json
@@ -18,20 +19,40 @@ from contactbench.config import CONFIG_DIR, REPO_ROOT
 from contactbench.errors import ContactbenchError
 
 REQUIRED_KEYS = {
-    "model", "dataset", "variant", "split", "n_trajectories", "context_frames", "pos_err", "rot_err_rad",
-    "floor_penetration_m", "interbody_penetration_m", "pairwise_collisions",
+    "model",
+    "dataset",
+    "variant",
+    "split",
+    "n_trajectories",
+    "context_frames",
+    "pos_err",
+    "rot_err_rad",
+    "floor_penetration_m",
+    "interbody_penetration_m",
+    "pairwise_collisions",
 }
 
 
 def compose_config(name: str, overrides: list[str], tmp_path: Path):
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        return compose(config_name=name, overrides=[f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data", *overrides])
+        return compose(
+            config_name=name,
+            overrides=[f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data", *overrides],
+        )
 
 
 def run_entry_point(script: str, overrides: list[str], tmp_path: Path, timeout: float = 300, **kwargs):
-    command = [sys.executable, str(REPO_ROOT / script), *overrides, f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data"]
+    command = [
+        sys.executable,
+        str(REPO_ROOT / script),
+        *overrides,
+        f"paths.log_dir={tmp_path}/outputs",
+        f"paths.data_dir={tmp_path}/data",
+    ]
     environment = {**os.environ, "WANDB_MODE": "disabled"}
-    return subprocess.run(command, capture_output=True, text=True, timeout=timeout, env=environment, cwd=tmp_path, **kwargs)
+    return subprocess.run(
+        command, capture_output=True, text=True, timeout=timeout, env=environment, cwd=tmp_path, **kwargs
+    )
 
 
 def test_evaluate_analytical_baselines_on_real_cube(tmp_path):
@@ -55,7 +76,9 @@ def test_evaluate_analytical_baselines_on_real_cube(tmp_path):
 def test_train_never_loads_test_unless_asked(tmp_path, monkeypatch):
     loaded = []
     original = runs.read_recordings
-    monkeypatch.setattr(runs, "read_recordings", lambda path, splits: loaded.append(list(splits)) or original(path, splits))
+    monkeypatch.setattr(
+        runs, "read_recordings", lambda path, splits: loaded.append(list(splits)) or original(path, splits)
+    )
     cfg = compose_config("train", ["dataset=contactnets_cube", "model=mujoco_default"], tmp_path)
     runs.train(cfg, tmp_path / "run")
     assert loaded == [["train", "val"]]
@@ -72,26 +95,60 @@ def test_sysid_smoke_fits_saves_parameters_and_evaluate_scores_them(tmp_path):
     assert val_pos_err == json.loads((run_dir / "val" / "metrics.json").read_text())["pos_err"]
     checkpoint = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
     assert torch.isfinite(checkpoint["state_dict"]["selected"]).all()
-    eval_cfg = compose_config("evaluate", ["dataset=contactnets_cube", "model=sysid", "budget=smoke", f"train_dir={run_dir}", "split=val"], tmp_path)
+    eval_cfg = compose_config(
+        "evaluate",
+        ["dataset=contactnets_cube", "model=sysid", "budget=smoke", f"train_dir={run_dir}", "split=val"],
+        tmp_path,
+    )
     document = runs.evaluate(eval_cfg, tmp_path / "eval-run")
     assert document["model"] == "sysid" and document["pos_err"] == pytest.approx(val_pos_err)
 
 
 def test_sysid_process_exits_by_itself(tmp_path):
     """nevergrad's recast optimisers leave threads behind; train.py must still exit on its own."""
-    result = run_entry_point("train.py", ["model=sysid", "dataset=contactnets_cube", "budget=smoke"], tmp_path, timeout=240)
+    result = run_entry_point(
+        "train.py", ["model=sysid", "dataset=contactnets_cube", "budget=smoke"], tmp_path, timeout=240
+    )
     assert result.returncode == 0, result.stderr[-2000:]
 
 
 def test_sysid_killed_run_resumes_instead_of_starting_over(tmp_path):
-    overrides = ["model=sysid", "dataset=contactnets_cube", "budget=smoke", "model.module.evaluations=96", "model.module.num_workers=4", "model.module.restarts=1"]
-    command = [sys.executable, str(REPO_ROOT / "train.py"), f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data", *overrides]
+    overrides = [
+        "model=sysid",
+        "dataset=contactnets_cube",
+        "budget=smoke",
+        "model.module.evaluations=96",
+        "model.module.num_workers=4",
+        "model.module.restarts=1",
+    ]
+    command = [
+        sys.executable,
+        str(REPO_ROOT / "train.py"),
+        f"paths.log_dir={tmp_path}/outputs",
+        f"paths.data_dir={tmp_path}/data",
+        *overrides,
+    ]
     environment = {**os.environ, "WANDB_MODE": "disabled"}
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=environment, cwd=tmp_path)
-    checkpoint = tmp_path / "outputs" / "train" / "sysid" / "contactnets_cube" / "real" / "budget=smoke,seed=0" / "checkpoints" / "last.ckpt"
+    process = subprocess.Popen(
+        command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=environment, cwd=tmp_path
+    )
+    checkpoint = (
+        tmp_path
+        / "outputs"
+        / "train"
+        / "sysid"
+        / "contactnets_cube"
+        / "real"
+        / "budget=smoke,seed=0"
+        / "checkpoints"
+        / "last.ckpt"
+    )
     deadline = time.monotonic() + 180
     while time.monotonic() < deadline and process.poll() is None:
-        if checkpoint.exists() and torch.load(checkpoint, weights_only=True)["callbacks"]["NevergradSearch"]["generation"] >= 3:
+        if (
+            checkpoint.exists()
+            and torch.load(checkpoint, weights_only=True)["callbacks"]["NevergradSearch"]["generation"] >= 3
+        ):
             break
         time.sleep(0.05)
     assert process.poll() is None, "the search finished before it could be killed; give it more evaluations"
@@ -107,19 +164,34 @@ def test_sysid_killed_run_resumes_instead_of_starting_over(tmp_path):
 
 
 def test_bad_dataset_path_is_one_clear_error(tmp_path):
-    result = run_entry_point("evaluate.py", ["dataset=recordings", f"recordings={tmp_path}/nowhere"], tmp_path, timeout=120)
+    result = run_entry_point(
+        "evaluate.py", ["dataset=recordings", f"recordings={tmp_path}/nowhere"], tmp_path, timeout=120
+    )
     assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [f"error: {tmp_path}/nowhere: not a dataset folder (expected a folder with meta.json)"]
+    assert result.stderr.strip().splitlines() == [
+        f"error: {tmp_path}/nowhere: not a dataset folder (expected a folder with meta.json)"
+    ]
     assert "Traceback" not in result.stdout + result.stderr
 
 
 def test_multirun_names_job_folders_after_their_overrides(tmp_path):
     result = run_entry_point(
-        "evaluate.py", ["-m", "model=mujoco_default,mujoco_fixed", "variant=contactnets_cube", "split=val", f"hydra.sweep.dir={tmp_path}/sweep"], tmp_path, timeout=300
+        "evaluate.py",
+        [
+            "-m",
+            "model=mujoco_default,mujoco_fixed",
+            "variant=contactnets_cube",
+            "split=val",
+            f"hydra.sweep.dir={tmp_path}/sweep",
+        ],
+        tmp_path,
+        timeout=300,
     )
     assert result.returncode == 0, result.stderr[-2000:]
     for model, name in (("mujoco_default", "mujoco_default"), ("mujoco_fixed", "mujoco_fixed_acosta2022")):
-        document = json.loads((tmp_path / "sweep" / f"model={model},split=val,variant=contactnets_cube" / "metrics.json").read_text())
+        document = json.loads(
+            (tmp_path / "sweep" / f"model={model},split=val,variant=contactnets_cube" / "metrics.json").read_text()
+        )
         assert document["model"] == name and document["n_trajectories"] == 165
 
 
@@ -130,7 +202,9 @@ def test_a_run_folder_refuses_to_resume_or_serve_other_settings(tmp_path):
     with pytest.raises(ContactbenchError, match="other settings.*resume=false"):
         runs.train(compose_config("train", changed, tmp_path), run_dir)
     with pytest.raises(ContactbenchError, match="cannot score the model of"):
-        runs.evaluate(compose_config("evaluate", [*changed, f"train_dir={run_dir}", "split=val"], tmp_path), tmp_path / "eval")
+        runs.evaluate(
+            compose_config("evaluate", [*changed, f"train_dir={run_dir}", "split=val"], tmp_path), tmp_path / "eval"
+        )
 
 
 def test_models_never_see_the_test_split_or_the_generator(tmp_path, monkeypatch):
@@ -138,7 +212,23 @@ def test_models_never_see_the_test_split_or_the_generator(tmp_path, monkeypatch)
     from contactbench.models.analytical import MujocoContactModel
 
     original_fit, original_rollout = MujocoContactModel.fit, MujocoContactModel.rollout
-    monkeypatch.setattr(MujocoContactModel, "fit", lambda self, dataset: seen.append(("fit", sorted(dataset.splits), "generator" in dataset.meta)) or original_fit(self, dataset))
-    monkeypatch.setattr(MujocoContactModel, "rollout", lambda self, dataset, context: seen.append(("rollout", sorted(dataset.splits), "generator" in dataset.meta)) or original_rollout(self, dataset, context))
-    runs.train(compose_config("train", ["dataset=contactnets_cube", "model=mujoco_default", "test=true"], tmp_path), tmp_path / "run")
+    monkeypatch.setattr(
+        MujocoContactModel,
+        "fit",
+        lambda self, dataset: (
+            seen.append(("fit", sorted(dataset.splits), "generator" in dataset.meta)) or original_fit(self, dataset)
+        ),
+    )
+    monkeypatch.setattr(
+        MujocoContactModel,
+        "rollout",
+        lambda self, dataset, context: (
+            seen.append(("rollout", sorted(dataset.splits), "generator" in dataset.meta))
+            or original_rollout(self, dataset, context)
+        ),
+    )
+    runs.train(
+        compose_config("train", ["dataset=contactnets_cube", "model=mujoco_default", "test=true"], tmp_path),
+        tmp_path / "run",
+    )
     assert seen == [("fit", ["train", "val"], False), ("rollout", [], False), ("rollout", [], False)]

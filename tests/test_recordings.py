@@ -1,4 +1,5 @@
 """The recordings reader/writer: round trip, the shipped real data, and a clear error for every malformed input."""
+
 from __future__ import annotations
 
 import json
@@ -7,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import falling_cubes
+
 from contactbench.config import REPO_ROOT
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
 
@@ -51,7 +52,11 @@ def test_invalid_data_is_never_written(tmp_path, small_recordings):
 def test_real_cube_asset_validates():
     dataset = read_recordings(REAL_CUBE)
     assert dataset.real
-    assert {name: split.n_trajectories for name, split in dataset.splits.items()} == {"train": 275, "val": 165, "test": 110}
+    assert {name: split.n_trajectories for name, split in dataset.splits.items()} == {
+        "train": 275,
+        "val": 165,
+        "test": 110,
+    }
     assert dataset.widths() == pytest.approx([0.1048])
     lengths = np.concatenate([split.lengths for split in dataset.splits.values()])
     assert lengths.min() >= 85 and lengths.max() <= 139
@@ -112,16 +117,37 @@ MALFORMED = {
     "missing split file": (lambda r: _remove(r, "val.npz"), r"val.npz: split file missing"),
     "wrong format": (lambda r: _edit_meta(r, lambda m: m.update(format="other")), "field 'format'"),
     "wrong version": (lambda r: _edit_meta(r, lambda m: m.update(version=2)), "field 'version' is 2"),
-    "mesh missing": (lambda r: _remove(r, "meshes/cube.obj"), r"cube.obj: mesh file missing \(meta.json bodies\[0\].mesh\)"),
+    "mesh missing": (
+        lambda r: _remove(r, "meshes/cube.obj"),
+        r"cube.obj: mesh file missing \(meta.json bodies\[0\].mesh\)",
+    ),
     "mesh not closed": (_break_mesh, "not a closed triangle mesh: an edge has only one face"),
-    "shape vs bodies": (lambda r: _edit_meta(r, lambda m: m["bodies"].pop()), r"train.npz: field 'poses' has shape \(2, 6, 2, 7\) \(expected \[N, T, K=1, 7\]"),
-    "non-unit quaternion": (lambda r: _edit_split(r, _scale_quaternion), "trajectory 0, frame 2, body 1: quaternion norm"),
+    "shape vs bodies": (
+        lambda r: _edit_meta(r, lambda m: m["bodies"].pop()),
+        r"train.npz: field 'poses' has shape \(2, 6, 2, 7\) \(expected \[N, T, K=1, 7\]",
+    ),
+    "non-unit quaternion": (
+        lambda r: _edit_split(r, _scale_quaternion),
+        "trajectory 0, frame 2, body 1: quaternion norm",
+    ),
     "NaN in valid frames": (lambda r: _edit_split(r, _set_nan), "field 'poses': trajectory 1, frame 3, body 1: NaN"),
-    "lengths out of range": (lambda r: _edit_split(r, lambda a: a.update(lengths=np.array([6, 9]))), "field 'lengths': trajectory 1 has length 9 \\(expected 1..6\\)"),
+    "lengths out of range": (
+        lambda r: _edit_split(r, lambda a: a.update(lengths=np.array([6, 9]))),
+        "field 'lengths': trajectory 1 has length 9 \\(expected 1..6\\)",
+    ),
     "non-positive dt": (lambda r: _edit_meta(r, lambda m: m.update(dt=0.0)), "field 'dt' is 0.0"),
-    "non-positive mass": (lambda r: _edit_meta(r, lambda m: m["bodies"][1].update(mass=-1)), r"bodies\[1\]: field 'mass' is -1"),
-    "velocities shape": (lambda r: _edit_split(r, lambda a: a.update(velocities=a["velocities"][..., :3])), "field 'velocities' has shape"),
-    "pickled object array": (lambda r: _edit_split(r, lambda a: a.update(poses=np.array([{"a": 1}], dtype=object))), "without unpickling|dtype object"),
+    "non-positive mass": (
+        lambda r: _edit_meta(r, lambda m: m["bodies"][1].update(mass=-1)),
+        r"bodies\[1\]: field 'mass' is -1",
+    ),
+    "velocities shape": (
+        lambda r: _edit_split(r, lambda a: a.update(velocities=a["velocities"][..., :3])),
+        "field 'velocities' has shape",
+    ),
+    "pickled object array": (
+        lambda r: _edit_split(r, lambda a: a.update(poses=np.array([{"a": 1}], dtype=object))),
+        "without unpickling|dtype object",
+    ),
     "invalid json": (lambda r: (r / "meta.json").write_text("{not json"), "meta.json: not valid JSON"),
     "gravity not a vector": (lambda r: _edit_meta(r, lambda m: m.update(gravity=[0, -9.8])), "field 'gravity'"),
     "split not in meta": (lambda r: _edit_meta(r, lambda m: m["splits"].pop("test")), "no split 'test'"),

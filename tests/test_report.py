@@ -1,18 +1,25 @@
 """A tiny benchmark matrix (smoke budget, two variants, two models) through the multirun and the report."""
+
 from __future__ import annotations
 
 import re
 
-from contactbench.evaluation.report import write_report
 from test_pipeline import run_entry_point
+
+from contactbench.evaluation.report import write_report
 
 
 def test_tiny_matrix_multirun_then_report(tmp_path):
     result = run_entry_point(
         "train.py",
         [
-            "-m", "model=mujoco_default,sysid", "variant=frictioncubes_0,frictioncubes_1", "budget=smoke", "test=true",
-            "generation.split_sizes={train:6,val:4,test:4}", f"hydra.sweep.dir={tmp_path}/sweep",
+            "-m",
+            "model=mujoco_default,sysid",
+            "variant=frictioncubes_0,frictioncubes_1",
+            "budget=smoke",
+            "test=true",
+            "generation.split_sizes={train:6,val:4,test:4}",
+            f"hydra.sweep.dir={tmp_path}/sweep",
         ],
         tmp_path,
         timeout=400,

@@ -1,4 +1,5 @@
 """rotations.py (w-first quaternions, hand-written for speed) agrees with scipy.spatial.transform.Rotation (x, y, z, w)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,7 +19,10 @@ def quaternions() -> np.ndarray:
     rng = np.random.default_rng(16)
     q = rotations.uniform_random(rng, 500)
     # edge cases: identity, half turns about each axis, a tiny rotation, and w < 0 (not canonical)
-    edges = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 1e-9, -1e-9, 2e-9], [-0.5, 0.5, 0.5, 0.5]], dtype=float)
+    edges = np.array(
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 1e-9, -1e-9, 2e-9], [-0.5, 0.5, 0.5, 0.5]],
+        dtype=float,
+    )
     return np.concatenate([q, rotations.normalize(edges)])
 
 
@@ -40,7 +44,9 @@ def test_products_and_rotations_match_scipy(quaternions):
     assert same_orientation(product, expected).max() < 1e-12
     vectors = np.random.default_rng(1).standard_normal((len(a), 3))
     np.testing.assert_allclose(rotations.rotate(a, vectors), scipy_rotation(a).apply(vectors), atol=1e-12)
-    np.testing.assert_allclose(rotations.rotate(rotations.conjugate(a), vectors), scipy_rotation(a).inv().apply(vectors), atol=1e-12)
+    np.testing.assert_allclose(
+        rotations.rotate(rotations.conjugate(a), vectors), scipy_rotation(a).inv().apply(vectors), atol=1e-12
+    )
 
 
 def test_rotation_vectors_and_angles_match_scipy(quaternions):
@@ -49,7 +55,9 @@ def test_rotation_vectors_and_angles_match_scipy(quaternions):
     from_vector = rotations.from_rotation_vector(expected)
     assert same_orientation(from_vector, quaternions).max() < 1e-12
     a, b = quaternions, np.roll(quaternions, 1, axis=0)
-    np.testing.assert_allclose(rotations.angle_between(a, b), (scipy_rotation(a).inv() * scipy_rotation(b)).magnitude(), atol=1e-9)
+    np.testing.assert_allclose(
+        rotations.angle_between(a, b), (scipy_rotation(a).inv() * scipy_rotation(b)).magnitude(), atol=1e-9
+    )
 
 
 def test_axis_angle_and_tilt_match_scipy():
@@ -63,6 +71,9 @@ def test_axis_angle_and_tilt_match_scipy():
 
 def test_angular_velocity_matches_scipy(quaternions):
     dt = 0.00676
-    q0, q1 = quaternions[:500], np.roll(quaternions[:500], 1, axis=0)   # random pairs: none a half turn apart (sign of pi)
+    q0, q1 = (
+        quaternions[:500],
+        np.roll(quaternions[:500], 1, axis=0),
+    )  # random pairs: none a half turn apart (sign of pi)
     expected = (scipy_rotation(q1) * scipy_rotation(q0).inv()).as_rotvec() / dt
     np.testing.assert_allclose(rotations.angular_velocity_from_quaternions(q0, q1, dt), expected, atol=1e-6)

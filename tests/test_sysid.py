@@ -1,4 +1,5 @@
 """SysID pieces: the search space, the batched objective against MuJoCo-made data, and NGOpt over a full budget."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -7,6 +8,7 @@ import nevergrad as ng
 import numpy as np
 import pytest
 import torch
+from test_pipeline import compose_config
 
 from contactbench.config import REPO_ROOT
 from contactbench.models.base import make_context
@@ -16,9 +18,10 @@ from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.recordings import Split, read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts
-from test_pipeline import compose_config
 
-TRUE_PARAMETERS = ContactParameters(object_friction=(0.3,), floor_friction=0.2, floor_stiffness=2000.0, floor_damping=60.0)
+TRUE_PARAMETERS = ContactParameters(
+    object_friction=(0.3,), floor_friction=0.2, floor_stiffness=2000.0, floor_damping=60.0
+)
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +43,21 @@ def mujoco_made_cube():
 
 def test_search_space_round_trip_and_clipping():
     space = SearchSpace(n_bodies=2)
-    params = ContactParameters(object_friction=(0.1, 0.9), floor_friction=0.5, floor_stiffness=300.0, floor_damping=20.0)
+    params = ContactParameters(
+        object_friction=(0.1, 0.9), floor_friction=0.5, floor_stiffness=300.0, floor_damping=20.0
+    )
     assert space.from_vector(space.to_vector(params)) == params
-    clipped = space.to_parameters({"object_friction": [-0.1, 1.2], "floor_friction": 0.5, "floor_stiffness": 2e4, "floor_damping": -3.0})
+    clipped = space.to_parameters(
+        {"object_friction": [-0.1, 1.2], "floor_friction": 0.5, "floor_stiffness": 2e4, "floor_damping": -3.0}
+    )
     assert clipped.object_friction == (0.0, 1.0) and clipped.floor_stiffness == 1e4 and clipped.floor_damping == 0.0
-    assert space.names == ["object_friction_0", "object_friction_1", "floor_friction", "floor_stiffness", "floor_damping"]
+    assert space.names == [
+        "object_friction_0",
+        "object_friction_1",
+        "floor_friction",
+        "floor_stiffness",
+        "floor_damping",
+    ]
 
 
 def test_objective_is_zero_at_the_parameters_that_made_the_data(mujoco_made_cube):
@@ -74,7 +87,9 @@ def test_ngopt_runs_the_whole_quick_budget(tmp_path):
     cfg = compose_config("train", ["model=sysid", "budget=quick"], tmp_path)
     h = cfg.model.module
     space = SearchSpace(1)
-    optimizer = ng.optimizers.registry[h.optimizer](parametrization=space.parametrization(0), budget=h.evaluations, num_workers=h.num_workers)
+    optimizer = ng.optimizers.registry[h.optimizer](
+        parametrization=space.parametrization(0), budget=h.evaluations, num_workers=h.num_workers
+    )
     target = space.to_vector(TRUE_PARAMETERS)
     scale = np.array([1.0, 1.0, 1e3, 1e2])
     for _ in range(-(-h.evaluations // h.num_workers)):
@@ -104,15 +119,33 @@ def _search_run(dataset, root, kill_at=None, resume=False):
             if kill_at == (self.restart, self.generation):
                 raise _Killed  # like SIGKILL: the checkpoint of this generation is all that survives
 
-    options = {"evaluations": 24, "restarts": 2, "num_workers": 4, "batch_trajectories": 4, "val_trajectories": 4, "nthread": 1}
+    options = {
+        "evaluations": 24,
+        "restarts": 2,
+        "num_workers": 4,
+        "batch_trajectories": 4,
+        "val_trajectories": 4,
+        "nthread": 1,
+    }
     module = SysIDModule(dataset, context_frames=6, **options)
     search = Search()
     trainer = pl.Trainer(
-        max_epochs=-1, limit_val_batches=0, enable_checkpointing=False, logger=False, enable_progress_bar=False,
-        enable_model_summary=False, callbacks=[search], default_root_dir=str(root),
+        max_epochs=-1,
+        limit_val_batches=0,
+        enable_checkpointing=False,
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[search],
+        default_root_dir=str(root),
     )
     checkpoint = root / "checkpoints" / "last.ckpt"
-    trainer.fit(module, datamodule=SysIDDataModule(dataset, 6, generations=12), ckpt_path=str(checkpoint) if resume else None, weights_only=True)
+    trainer.fit(
+        module,
+        datamodule=SysIDDataModule(dataset, 6, generations=12),
+        ckpt_path=str(checkpoint) if resume else None,
+        weights_only=True,
+    )
     return module, search
 
 
@@ -126,5 +159,7 @@ def test_a_killed_search_resumes_bit_identically_from_numbers_only(mujoco_made_c
     assert state["generation"] == 3 and state["asked"].shape == (12, 4) and state["losses"].dtype == torch.float64
     resumed, resumed_search = _search_run(dataset, tmp_path / "killed", resume=True)
     assert resumed_search.evaluations == whole_search.evaluations == 48
-    assert resumed_search.results == whole_search.results  # exact floats: recommendations and val losses of both restarts
+    assert (
+        resumed_search.results == whole_search.results
+    )  # exact floats: recommendations and val losses of both restarts
     assert torch.equal(resumed.selected, whole.selected)

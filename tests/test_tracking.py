@@ -1,14 +1,15 @@
 """Every logger back-end records a run's config and scores, offline, without asking for anything."""
+
 from __future__ import annotations
 
 import sqlite3
 
 import pytest
-
 from conftest import falling_cubes
+from test_pipeline import compose_config
+
 from contactbench import runs
 from contactbench.recordings import write_recordings
-from test_pipeline import compose_config
 
 
 @pytest.fixture
@@ -21,7 +22,9 @@ def test_logger_records_scores(tmp_path, recorded_dataset, logger, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_DIR", str(tmp_path))
     monkeypatch.delenv("WANDB_API_KEY", raising=False)
-    cfg = compose_config("evaluate", ["dataset=recordings", f"recordings={recorded_dataset}", f"logger={logger}", "split=val"], tmp_path)
+    cfg = compose_config(
+        "evaluate", ["dataset=recordings", f"recordings={recorded_dataset}", f"logger={logger}", "split=val"], tmp_path
+    )
     document = runs.evaluate(cfg, tmp_path / "run")
     assert document["dataset"] == "recordings" and document["variant"] == "falling"
     assert document["interbody_penetration_m"] is not None and document["pairwise_collisions"] is not None

@@ -1,4 +1,5 @@
 """Atomic, byte-reproducible file writes: temp file in the same folder, then rename."""
+
 from __future__ import annotations
 
 import io
@@ -11,8 +12,9 @@ import socket
 import tempfile
 import time
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -101,7 +103,9 @@ def remove_stale_staging(target: str | os.PathLike) -> list[Path]:
     target = Path(target)
     if not target.parent.is_dir():
         return []
-    pattern = re.compile(rf"\.{re.escape(target.name)}\.(?:(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.)?[A-Za-z0-9_]{{8}}\.tmp")
+    pattern = re.compile(
+        rf"\.{re.escape(target.name)}\.(?:(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.)?[A-Za-z0-9_]{{8}}\.tmp"
+    )
     host = _owner().rsplit("-", 1)[0]
     removed = []
     for path in target.parent.iterdir():

@@ -1,4 +1,5 @@
 """OmegaConf resolvers the Hydra configs use: repository root and stable variant names."""
+
 from __future__ import annotations
 
 import os

@@ -1,4 +1,5 @@
 """A run folder's own record: decide whether a command may use a folder before it writes anything, then record it."""
+
 from __future__ import annotations
 
 import json
@@ -45,7 +46,9 @@ def _read_signature(path: Path) -> object:
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise FolderRefused(f"{path}: not valid JSON ({error}); expected the signature contactbench wrote for that run") from None
+        raise FolderRefused(
+            f"{path}: not valid JSON ({error}); expected the signature contactbench wrote for that run"
+        ) from None
 
 
 def claim(cfg: DictConfig, output_dir: Path, task: str) -> None:
@@ -105,7 +108,9 @@ def check_checkpoint(cfg: DictConfig, output_dir: Path) -> None:
             continue
         key = callback.__qualname__
         if key not in states:
-            raise FolderRefused(f"{path}: field 'callbacks.{key}' is missing (expected the state of the {key} callback)")
+            raise FolderRefused(
+                f"{path}: field 'callbacks.{key}' is missing (expected the state of the {key} callback)"
+            )
         try:
             callback.check_state(states[key], f"{path}: callbacks.{key}")
         except ContactbenchError as error:

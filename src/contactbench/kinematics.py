@@ -1,4 +1,5 @@
 """Rigid-body kinematics from recorded poses: velocities by finite differences, world vertex positions."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
 """Triangle meshes: OBJ read/write, closedness check, mass properties and widths."""
+
 from __future__ import annotations
 
 import os
@@ -79,7 +80,9 @@ def read_obj(path: str | os.PathLike) -> Mesh:
     except OSError as error:
         raise MeshError(f"{path}: cannot read mesh ({error.strerror})") from None
     except UnicodeDecodeError as error:
-        raise MeshError(f"{path}: not a text OBJ file (byte {error.start} is not UTF-8; expected 'v x y z' and 'f i j k' lines)") from None
+        raise MeshError(
+            f"{path}: not a text OBJ file (byte {error.start} is not UTF-8; expected 'v x y z' and 'f i j k' lines)"
+        ) from None
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
@@ -97,7 +100,9 @@ def read_obj(path: str | os.PathLike) -> Mesh:
             raise MeshError(f"{path}: line {number}: cannot parse {line.strip()!r}") from None
     outside = next((i for face in faces for i in face if not 0 <= i < len(vertices)), None)
     if outside is not None:
-        raise MeshError(f"{path}: a face refers to vertex {outside + 1} (expected 1..{len(vertices)}, the file's 'v' lines)")
+        raise MeshError(
+            f"{path}: a face refers to vertex {outside + 1} (expected 1..{len(vertices)}, the file's 'v' lines)"
+        )
     vertex_array = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     face_array = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if not np.all(np.isfinite(vertex_array)):

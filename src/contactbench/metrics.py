@@ -1,4 +1,5 @@
 """The paper's evaluation metrics (§4.1, §5.2): pose errors, floor and inter-body penetration, pairwise collisions, eq. (1)."""
+
 from __future__ import annotations
 
 import itertools
@@ -38,16 +39,24 @@ def _check_pose_pair(true_poses: np.ndarray, pred_poses: np.ndarray, widths: np.
     try:
         shape = np.broadcast_shapes(true_poses.shape, pred_poses.shape)
     except ValueError:
-        raise ValueError(f"true poses {true_poses.shape} and predicted poses {pred_poses.shape} do not broadcast") from None
+        raise ValueError(
+            f"true poses {true_poses.shape} and predicted poses {pred_poses.shape} do not broadcast"
+        ) from None
     if true_poses.shape[-2] != pred_poses.shape[-2]:
-        raise ValueError(f"true poses {true_poses.shape} and predicted poses {pred_poses.shape} have different body counts")
+        raise ValueError(
+            f"true poses {true_poses.shape} and predicted poses {pred_poses.shape} have different body counts"
+        )
     if widths is not None and widths.shape != (shape[-2],):
         raise ValueError(f"widths {widths.shape} do not match the {shape[-2]} bodies of poses {shape}")
 
 
 def position_error(true_poses, pred_poses, widths) -> np.ndarray:
     """‖x̄ − x̂‖ / w_k per body: poses [..., K, 7] (broadcasting), widths [K]; returns [..., K]."""
-    true_poses, pred_poses, widths = np.asarray(true_poses, float), np.asarray(pred_poses, float), np.asarray(widths, float)
+    true_poses, pred_poses, widths = (
+        np.asarray(true_poses, float),
+        np.asarray(pred_poses, float),
+        np.asarray(widths, float),
+    )
     _check_pose_pair(true_poses, pred_poses, widths)
     return np.linalg.norm(true_poses[..., :3] - pred_poses[..., :3], axis=-1) / widths
 
@@ -66,7 +75,11 @@ def configuration_error(true_poses, pred_poses, widths, position_exponent: int =
     dimensionless like the angle term. Leading axes broadcast, e.g. pred [B, N, T, K, 7] against true
     [N, T, K, 7] gives [B, N, T].
     """
-    true_poses, pred_poses, widths = np.asarray(true_poses, float), np.asarray(pred_poses, float), np.asarray(widths, float)
+    true_poses, pred_poses, widths = (
+        np.asarray(true_poses, float),
+        np.asarray(pred_poses, float),
+        np.asarray(widths, float),
+    )
     _check_pose_pair(true_poses, pred_poses, widths)
     offset = true_poses[..., :3] - pred_poses[..., :3]
     positional = np.einsum("...i,...i->...", offset, offset) @ (2.0 / widths) ** position_exponent
@@ -93,7 +106,9 @@ def _lowest_vertex_z(poses: np.ndarray, meshes: list[Mesh]) -> np.ndarray:
     """World z of each body's lowest vertex: poses [..., K, 7] → [..., K]."""
     poses = _unit_quaternions(np.asarray(poses, float))
     _check_poses_meshes(poses, meshes)
-    return np.stack([world_vertices(poses[..., k, :], mesh.vertices)[..., 2].min(axis=-1) for k, mesh in enumerate(meshes)], axis=-1)
+    return np.stack(
+        [world_vertices(poses[..., k, :], mesh.vertices)[..., 2].min(axis=-1) for k, mesh in enumerate(meshes)], axis=-1
+    )
 
 
 def floor_penetration(poses, meshes: list[Mesh], floor_z: float) -> np.ndarray:
@@ -162,7 +177,9 @@ def _convex_geometry(mesh: Mesh, body: int) -> _ConvexGeometry:
     )
 
 
-def _sat_separation(poses_a: np.ndarray, poses_b: np.ndarray, geometry_a: _ConvexGeometry, geometry_b: _ConvexGeometry) -> np.ndarray:
+def _sat_separation(
+    poses_a: np.ndarray, poses_b: np.ndarray, geometry_a: _ConvexGeometry, geometry_b: _ConvexGeometry
+) -> np.ndarray:
     """Signed separation of two convex bodies at unit-quaternion poses [S, 7] each: max over candidate axes of the gap
     between the bodies' projection intervals, i.e. −(penetration depth) when they overlap; returns [S].
 
@@ -179,7 +196,9 @@ def _sat_separation(poses_a: np.ndarray, poses_b: np.ndarray, geometry_a: _Conve
         b_to_a = rotation_a.transpose(0, 2, 1) @ rotations.to_matrix(part_b[:, 3:])
         offset_in_a = np.einsum("sji,sj->si", rotation_a, part_b[:, :3] - part_a[:, :3])
         edges_b = geometry_b.edge_directions @ b_to_a.transpose(0, 2, 1)
-        edge_axes = np.cross(geometry_a.edge_directions[None, :, None, :], edges_b[:, None, :, :]).reshape(len(part_a), -1, 3)
+        edge_axes = np.cross(geometry_a.edge_directions[None, :, None, :], edges_b[:, None, :, :]).reshape(
+            len(part_a), -1, 3
+        )
         edge_sines = np.linalg.norm(edge_axes, axis=-1)
         is_parallel = edge_sines < PARALLEL_EDGE_SINE
         edge_axes /= np.where(is_parallel, 1.0, edge_sines)[..., None]
@@ -271,9 +290,13 @@ def interbody_penetration(poses, meshes: list[Mesh]) -> np.ndarray:
 # ---------------------------------------------------------------- scoring protocol
 
 
-def _scored_mask(true_poses: np.ndarray, pred_poses: np.ndarray, lengths: np.ndarray, start_frame: int, n_meshes: int) -> np.ndarray:
+def _scored_mask(
+    true_poses: np.ndarray, pred_poses: np.ndarray, lengths: np.ndarray, start_frame: int, n_meshes: int
+) -> np.ndarray:
     if true_poses.ndim != 4 or true_poses.shape[-1] != 7 or pred_poses.shape != true_poses.shape:
-        raise ValueError(f"true poses {true_poses.shape} and predicted poses {pred_poses.shape} must both be [N, T, K, 7]")
+        raise ValueError(
+            f"true poses {true_poses.shape} and predicted poses {pred_poses.shape} must both be [N, T, K, 7]"
+        )
     n_trajectories, n_frames, n_bodies, _ = true_poses.shape
     if n_bodies != n_meshes:
         raise ValueError(f"poses {true_poses.shape} have {n_bodies} bodies but {n_meshes} meshes were given")
@@ -283,10 +306,14 @@ def _scored_mask(true_poses: np.ndarray, pred_poses: np.ndarray, lengths: np.nda
         raise ValueError(f"start_frame must be non-negative, got {start_frame}")
     if lengths.max(initial=0) > n_frames:
         worst = int(np.argmax(lengths))
-        raise ValueError(f"trajectory {worst} has length {lengths[worst]} but poses {true_poses.shape} hold only {n_frames} frames")
+        raise ValueError(
+            f"trajectory {worst} has length {lengths[worst]} but poses {true_poses.shape} hold only {n_frames} frames"
+        )
     if lengths.min(initial=n_frames) <= start_frame:
         short = int(np.argmin(lengths))
-        raise ValueError(f"trajectory {short} has length {lengths[short]} <= start_frame {start_frame}: nothing to score")
+        raise ValueError(
+            f"trajectory {short} has length {lengths[short]} <= start_frame {start_frame}: nothing to score"
+        )
     frames = np.arange(n_frames)
     return (frames >= start_frame) & (frames < lengths[:, None])
 
@@ -341,7 +368,9 @@ def compute_metrics(
     true_poses, pred_poses = np.asarray(true_poses, float), np.asarray(pred_poses, float)
     lengths = np.asarray(lengths)
     scored = _scored_mask(true_poses, pred_poses, lengths, int(start_frame), len(meshes))
-    true_scored, pred_scored = (_undefined_if_not_finite(poses[scored]) for poses in (true_poses, pred_poses))  # [S, K, 7]
+    true_scored, pred_scored = (
+        _undefined_if_not_finite(poses[scored]) for poses in (true_poses, pred_poses)
+    )  # [S, K, 7]
     widths = np.array([mesh.width for mesh in meshes])
     lowest = lowest_vertex_height(pred_scored, meshes, floor_z)
     per_frame_values = {
@@ -353,7 +382,9 @@ def compute_metrics(
     n_bodies = len(meshes)
     if n_bodies > 1:
         geometries = [_convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
-        pred_separations = _pairwise_separations(_unit_quaternions(pred_scored), geometries, max(contact_tolerance, 0.0))
+        pred_separations = _pairwise_separations(
+            _unit_quaternions(pred_scored), geometries, max(contact_tolerance, 0.0)
+        )
         true_separations = _pairwise_separations(_unit_quaternions(true_scored), geometries, contact_tolerance)
         per_frame_values["interbody_penetration_m"] = np.maximum(0.0, -pred_separations).max(axis=-1)
 

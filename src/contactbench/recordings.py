@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import copy
-import shutil
 import json
 import lzma
 import math
 import os
+import shutil
 import zipfile
 import zlib
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path, PurePosixPath, PureWindowsPath
-from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -61,7 +61,7 @@ class Split:
         """[N, T] True where a frame is inside its trajectory."""
         return np.arange(self.n_frames)[None, :] < self.lengths[:, None]
 
-    def select(self, indices: Iterable[int] | np.ndarray) -> "Split":
+    def select(self, indices: Iterable[int] | np.ndarray) -> Split:
         """The trajectories at `indices`, trimmed to the longest of them."""
         indices = np.asarray(list(indices) if not isinstance(indices, np.ndarray) else indices, dtype=np.int64)
         lengths = self.lengths[indices]
@@ -153,7 +153,7 @@ class Recordings:
             raise RecordingsError(f"{where}: split {name!r} not loaded (available: {sorted(self.splits)})")
         return self.splits[name]
 
-    def for_models(self, splits: Iterable[str] = ()) -> "Recordings":
+    def for_models(self, splits: Iterable[str] = ()) -> Recordings:
         """What a model may see: only the named splits, and no meta.generator (the hidden simulation parameters)."""
         meta = copy.deepcopy(self.meta)
         meta.pop("generator", None)
@@ -191,7 +191,10 @@ def _inside_path(value: str, field: str, where: str) -> None:
     """Paths in meta.json name files inside the dataset folder: never absolute, never up and out with '..'."""
     path = PurePosixPath(value)
     if not value or path.is_absolute() or PureWindowsPath(value).is_absolute() or ".." in path.parts or "\\" in value:
-        raise _fail(where, f"field '{field}' is {value!r} (expected a relative path inside the dataset folder, '/'-separated, without '..')")
+        raise _fail(
+            where,
+            f"field '{field}' is {value!r} (expected a relative path inside the dataset folder, '/'-separated, without '..')",
+        )
 
 
 def validate_meta(meta: object, where: str) -> None:
@@ -328,8 +331,21 @@ def read_split(path: Path, n_bodies: int) -> Split:
                     poses.shape[0] if poses.ndim else 0, poses.shape[1] if poses.ndim > 1 else 0, dtype=np.int64
                 )
             velocities = _float_array(archive, members, "velocities", where) if "velocities" in members else None
-            extras = {name: _member(archive, members, name, where) for name in members if name not in ("poses", "lengths", "velocities")}
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, OSError, EOFError, RuntimeError, zlib.error, lzma.LZMAError) as error:
+            extras = {
+                name: _member(archive, members, name, where)
+                for name in members
+                if name not in ("poses", "lengths", "velocities")
+            }
+    except (
+        zipfile.BadZipFile,
+        zipfile.LargeZipFile,
+        NotImplementedError,
+        OSError,
+        EOFError,
+        RuntimeError,
+        zlib.error,
+        lzma.LZMAError,
+    ) as error:
         raise _fail(where, f"not a readable .npz archive ({_first_line(error)})") from None
     except ValueError as error:
         if isinstance(error, RecordingsError):
@@ -371,9 +387,15 @@ def _npz_members(archive: zipfile.ZipFile, path: Path, where: str) -> dict[str, 
         if info.is_dir():
             continue
         if info.compress_size > file_size:
-            raise _fail(where, f"field '{name}': its zip entry claims {info.compress_size} compressed bytes, more than the file's {file_size} (expected an intact archive)")
+            raise _fail(
+                where,
+                f"field '{name}': its zip entry claims {info.compress_size} compressed bytes, more than the file's {file_size} (expected an intact archive)",
+            )
         if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
-            raise _fail(where, f"field '{name}': its stored zip entry claims {info.file_size} bytes but holds {info.compress_size} (expected an intact archive)")
+            raise _fail(
+                where,
+                f"field '{name}': its stored zip entry claims {info.file_size} bytes but holds {info.compress_size} (expected an intact archive)",
+            )
         if info.file_size > INFLATION_FREE_BYTES and info.file_size > MAX_INFLATION * max(info.compress_size, 1):
             raise _fail(
                 where,
@@ -384,7 +406,10 @@ def _npz_members(archive: zipfile.ZipFile, path: Path, where: str) -> dict[str, 
         declared += info.file_size
     limit = memory_limit()
     if declared > limit:
-        raise _fail(where, f"its arrays declare {declared} bytes, more than this machine's {limit} bytes of memory (expected a split that fits in memory)")
+        raise _fail(
+            where,
+            f"its arrays declare {declared} bytes, more than this machine's {limit} bytes of memory (expected a split that fits in memory)",
+        )
     return members
 
 
@@ -416,7 +441,9 @@ def _member(archive: zipfile.ZipFile, members: Mapping[str, zipfile.ZipInfo], na
         except Exception as error:  # numpy parses the header text as a Python literal: any failure there is this one
             raise _fail(where, f"field '{name}' is not a readable .npy array ({_first_line(error)})") from None
         if dtype.hasobject:
-            raise _fail(where, f"field '{name}' cannot be read without unpickling (object data); arrays must be plain numeric")
+            raise _fail(
+                where, f"field '{name}' cannot be read without unpickling (object data); arrays must be plain numeric"
+            )
         if dtype.kind not in NUMERIC_KINDS or dtype.fields is not None or dtype.subdtype is not None:
             raise _fail(where, f"field '{name}' has dtype {dtype} (expected a plain numeric array)")
         if any(n < 0 for n in shape):
@@ -462,7 +489,9 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
         raise RecordingsError(
             f"{root / 'meta.json'}: field 'splits' has no split {unknown[0]!r} (it has {sorted(meta['splits'])})"
         )
-    loaded = {name: read_split(_inside(root, meta["splits"][name], f"splits.{name}"), len(meta["bodies"])) for name in wanted}
+    loaded = {
+        name: read_split(_inside(root, meta["splits"][name], f"splits.{name}"), len(meta["bodies"])) for name in wanted
+    }
     return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
 
 
@@ -471,7 +500,11 @@ def require_frames(recordings: Recordings, minimum: int, reason: str) -> None:
     for name, split in recordings.splits.items():
         short = np.flatnonzero(split.lengths < minimum)
         if len(short):
-            where = recordings.root / recordings.meta["splits"][name] if recordings.root is not None else f"{recordings.name} split {name!r}"
+            where = (
+                recordings.root / recordings.meta["splits"][name]
+                if recordings.root is not None
+                else f"{recordings.name} split {name!r}"
+            )
             raise RecordingsError(
                 f"{where}: field 'lengths': trajectory {short[0]} has {split.lengths[short[0]]} frames "
                 f"({len(short)} of {split.n_trajectories} have fewer than {minimum}; expected at least {minimum}: {reason})"

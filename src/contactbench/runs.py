@@ -1,4 +1,5 @@
 """What generate.py, train.py and evaluate.py do, as functions of a composed Hydra config (tests call these)."""
+
 from __future__ import annotations
 
 import json
@@ -74,7 +75,11 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
         generate(cfg)
     dataset = read_recordings(path, splits)
     context_frames = int(cfg.context_frames)
-    require_frames(dataset, context_frames + 1, f"context_frames={context_frames} frames are given to the models, which predict the rest")
+    require_frames(
+        dataset,
+        context_frames + 1,
+        f"context_frames={context_frames} frames are given to the models, which predict the rest",
+    )
     return dataset
 
 
@@ -109,7 +114,9 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     resume_from = str(last) if cfg.resume and last.exists() else None
     if resume_from:
         log.info("resuming from %s", resume_from)  # folders.check has checked its signature and contents
-        tracking.drop_rows_from_step(output_dir, int(torch.load(resume_from, weights_only=True, map_location="cpu")["global_step"]))
+        tracking.drop_rows_from_step(
+            output_dir, int(torch.load(resume_from, weights_only=True, map_location="cpu")["global_step"])
+        )
     trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     checkpoint = Path(best_path).name if best_path else "last.ckpt"
@@ -137,7 +144,9 @@ def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> Contac
         return instantiate(cfg.model.contact_model)
     record = Path(train_dir) / "fitted.json"
     if not record.is_file():
-        raise FileNotFoundError(f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget first")
+        raise FileNotFoundError(
+            f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget first"
+        )
     folders.check_signature(cfg, Path(train_dir), "score the model of")
     checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
     return _load_module(cfg, dataset.for_models(), checkpoint).to_contact_model()
@@ -151,8 +160,12 @@ def _configure_torch(cfg: DictConfig) -> None:
         torch.set_num_threads(int(cfg.torch_threads))
 
 
-def _score_and_write(cfg: DictConfig, model: ContactModel, dataset: Recordings, split: str, out_dir: Path, logger) -> dict:
-    score = score_model(model, dataset, split, cfg.context_frames, dataset_name=cfg.dataset.name, variant=cfg.dataset.variant)
+def _score_and_write(
+    cfg: DictConfig, model: ContactModel, dataset: Recordings, split: str, out_dir: Path, logger
+) -> dict:
+    score = score_model(
+        model, dataset, split, cfg.context_frames, dataset_name=cfg.dataset.name, variant=cfg.dataset.variant
+    )
     for key, value in score.metrics.summary.items():
         # A reported metric that is not a number (null in metrics.json) would rank as nothing at all: an error instead.
         # (Model selection inside training scores with NaN on purpose: there a diverging candidate just loses.)
@@ -218,11 +231,19 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     folders.check(cfg, Path(output_dir), "diagnose")
     path = Path(cfg.recordings)
     dataset = read_recordings(path, ["train", "val", "test"])
-    require_frames(dataset, int(cfg.context_frames) + 1, f"context_frames={int(cfg.context_frames)} frames are given to the models, which predict the rest")
+    require_frames(
+        dataset,
+        int(cfg.context_frames) + 1,
+        f"context_frames={int(cfg.context_frames)} frames are given to the models, which predict the rest",
+    )
     dataset = dataset.for_models(["train", "val", "test"])
     folders.record(cfg, Path(output_dir), "diagnose")
     document, arrays = run_diagnosis(
-        dataset, Budget(**cfg.budget.diagnose), Decision(margin=float(cfg.margin)), seed=int(cfg.seed), context_frames=int(cfg.context_frames)
+        dataset,
+        Budget(**cfg.budget.diagnose),
+        Decision(margin=float(cfg.margin)),
+        seed=int(cfg.seed),
+        context_frames=int(cfg.context_frames),
     )
     document["recordings"] = str(path)
     document["budget_name"] = str(cfg.budget.name)

@@ -1,4 +1,5 @@
 """Checks of a composed config before a command does anything: an impossible setting is one clear error, not a run."""
+
 from __future__ import annotations
 
 import difflib
@@ -23,7 +24,17 @@ COUNTS = {
     "sysid": ("evaluations", "restarts", "num_workers"),
     "gnn": ("max_steps", "val_check_interval"),
     "hybrid": ("max_epochs",),
-    "diagnose": ("segment_frames", "fit_trajectories", "val_trajectories", "base_evaluations", "batch", "lsq_iterations", "front_runners", "max_effects", "bootstrap"),
+    "diagnose": (
+        "segment_frames",
+        "fit_trajectories",
+        "val_trajectories",
+        "base_evaluations",
+        "batch",
+        "lsq_iterations",
+        "front_runners",
+        "max_effects",
+        "bootstrap",
+    ),
 }
 COUNTS_OR_ALL = {"sysid": ("batch_trajectories", "val_trajectories"), "gnn": ("val_rollouts",)}
 RATES = {"gnn": ("lr",)}
@@ -105,7 +116,11 @@ def _check_budget(budget: DictConfig) -> None:
     for group, keys in RATES.items():
         for key in keys:
             value = OmegaConf.select(budget, f"{group}.{key}", default=None)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0)):
+            if value is not None and (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
                 raise ContactbenchError(f"budget.{group}.{key} is {value!r} (expected a positive number)")
 
 
@@ -133,4 +148,8 @@ def _check_scene(cfg: DictConfig) -> None:
     variant = str(cfg.dataset.variant)
     value = variant.split("=", 1)[1] if "=" in variant else variant
     if not (CONFIG_DIR / "variant" / f"{cfg.dataset.name}_{value}.yaml").is_file():
-        log.warning("%s %s is a custom variant, not one of the paper's Table 1 variants (conf/variant/)", cfg.dataset.name, variant)
+        log.warning(
+            "%s %s is a custom variant, not one of the paper's Table 1 variants (conf/variant/)",
+            cfg.dataset.name,
+            variant,
+        )

@@ -1,10 +1,10 @@
 """Build the configured experiment logger (csv, tensorboard, mlflow, wandb) and log a run's config and scores."""
+
 from __future__ import annotations
 
+import csv
 import logging
 from pathlib import Path
-
-import csv
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
@@ -24,7 +24,11 @@ def make_logger(cfg: DictConfig, output_dir: Path) -> Logger | None:
         location = {}  # one store for all runs (paths.log_dir/mlflow.db), so the dashboard compares them
         Path(cfg.paths.log_dir).mkdir(parents=True, exist_ok=True)
     logger = instantiate(cfg.logger, **location)
-    flat = {key: value for key, value in _flatten(OmegaConf.to_container(cfg, resolve=True)).items() if not key.startswith("hydra")}
+    flat = {
+        key: value
+        for key, value in _flatten(OmegaConf.to_container(cfg, resolve=True)).items()
+        if not key.startswith("hydra")
+    }
     logger.log_hyperparams(flat)
     return logger
 
@@ -32,7 +36,11 @@ def make_logger(cfg: DictConfig, output_dir: Path) -> Logger | None:
 def log_scores(logger: Logger | None, summary: dict, prefix: str, step: int = 0) -> None:
     if logger is None:
         return
-    numbers = {f"{prefix}/{key}": float(value) for key, value in summary.items() if isinstance(value, (int, float)) and not isinstance(value, bool)}
+    numbers = {
+        f"{prefix}/{key}": float(value)
+        for key, value in summary.items()
+        if isinstance(value, (int, float)) and not isinstance(value, bool)
+    }
     logger.log_metrics(numbers, step=step)
 
 

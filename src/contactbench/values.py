@@ -1,4 +1,5 @@
 """Plain Python numbers in frozen dataclasses, whatever the caller passed (numpy scalars, lists, Hydra containers)."""
+
 from __future__ import annotations
 
 from dataclasses import fields

@@ -1,4 +1,5 @@
 """Fit a hypothesis (base simulator + effects) to short-horizon residuals: global search, then least squares."""
+
 from __future__ import annotations
 
 import logging
@@ -113,14 +114,23 @@ class ResidualFit:
         unit0 = np.clip((start - lower) / span, 0.0, 1.0)
         loss_kind = ("linear", 1.0) if self.scale is None else ("soft_l1", self.scale / np.sqrt(self.entries))
         result = scipy.optimize.least_squares(
-            value, unit0, jac=lambda unit: self._jacobian(hypothesis, unit, value(unit)), bounds=(0.0, 1.0), method="trf",
-            max_nfev=iterations, x_scale=1.0, loss=loss_kind[0], f_scale=loss_kind[1],
+            value,
+            unit0,
+            jac=lambda unit: self._jacobian(hypothesis, unit, value(unit)),
+            bounds=(0.0, 1.0),
+            method="trf",
+            max_nfev=iterations,
+            x_scale=1.0,
+            loss=loss_kind[0],
+            f_scale=loss_kind[1],
         )
         losses = self.loss(hypothesis, lower + np.stack([unit0, result.x]) * span)
         unit = result.x if losses[1] <= losses[0] else unit0
         return lower + unit * span, float(min(losses))
 
-    def fit_effect(self, hypothesis: Hypothesis, start: np.ndarray, free: int, iterations: int) -> tuple[np.ndarray, float]:
+    def fit_effect(
+        self, hypothesis: Hypothesis, start: np.ndarray, free: int, iterations: int
+    ) -> tuple[np.ndarray, float]:
         """Least squares from `start` and from the best point of a quartile grid over the last `free` parameters (the
         effect's); the better fit wins. Least squares is local: an effect's optimum may lie far from "off" (a raised
         floor), but a coarse grid can also land beside a valley that the plain start descends into (a tilted floor)."""
@@ -150,7 +160,9 @@ class ResidualFit:
         span = upper - lower
         unit = np.clip((start - lower) / span, 0.0, 1.0)
         at_unit = self.vector(hypothesis, (lower + unit * span)[None])[0]
-        step = scipy.optimize.lsq_linear(self._jacobian(hypothesis, unit, at_unit), -at_unit, bounds=(-unit, 1.0 - unit)).x
+        step = scipy.optimize.lsq_linear(
+            self._jacobian(hypothesis, unit, at_unit), -at_unit, bounds=(-unit, 1.0 - unit)
+        ).x
         # The linear model only proposes the direction; the score is the best loss actually reached along it.
         trials = unit[None, :] + np.array(LINE_SEARCH)[:, None] * step[None, :]
         reached = self.loss(hypothesis, lower + np.vstack([unit, trials]) * span)

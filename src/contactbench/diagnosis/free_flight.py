@@ -6,6 +6,7 @@ vertical acceleration other than meta.gravity means the recordings' time base or
 interval of sqrt(a / g) dt, or positions scaled by a / g), or meta.gravity itself is wrong; MuJoCo can express all
 three as a scaled gravity (library effect `gravity_scale`). Fit on train, decide on val, confirm on test.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -50,8 +51,13 @@ def centre_accelerations(dataset: Recordings, split: Split) -> tuple[np.ndarray,
     """Per trajectory: the summed free-flight accelerations of the centres of mass [N, 3] (m/s^2) and their count [N]."""
     free = free_frames(dataset, split)
     poses = np.nan_to_num(split.poses)
-    centres = np.stack([poses[:, :, k, :3] + rotations.rotate(poses[:, :, k, 3:], dataset.mass_properties(k)[0])
-                        for k in range(dataset.n_bodies)], axis=2)  # [N, T, K, 3]
+    centres = np.stack(
+        [
+            poses[:, :, k, :3] + rotations.rotate(poses[:, :, k, 3:], dataset.mass_properties(k)[0])
+            for k in range(dataset.n_bodies)
+        ],
+        axis=2,
+    )  # [N, T, K, 3]
     acceleration = np.zeros_like(centres)
     acceleration[:, 1:-1] = (centres[:, 2:] - 2 * centres[:, 1:-1] + centres[:, :-2]) / dataset.dt**2
     sums = np.einsum("ntk,ntki->ni", free.astype(float), acceleration)
@@ -85,7 +91,9 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
     gravity = np.asarray(dataset.gravity, dtype=float)
     g = float(np.linalg.norm(gravity))
     down = gravity / g
-    splits = {name: measure(dataset, dataset.split(name), rng, draws, confidence) for name in SPLITS if name in dataset.splits}
+    splits = {
+        name: measure(dataset, dataset.split(name), rng, draws, confidence) for name in SPLITS if name in dataset.splits
+    }
     out: dict = {"meta_gravity": gravity.tolist(), "clearance_of_width": CLEARANCE, "margin": MARGIN, "splits": splits}
     for part in splits.values():
         if part["n_frames"]:
@@ -97,8 +105,12 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
             part["scale"] = part["along_gravity"] / g
     train, val, test = (splits.get(name, {}) for name in SPLITS)
     if not all(part.get("n_frames") for part in (train, val, test)):
-        out.update(scale=None, differs=False, confirmed=False,
-                   sentence="Too few free-flight frames in some split to measure the free-fall acceleration.")
+        out.update(
+            scale=None,
+            differs=False,
+            confirmed=False,
+            sentence="Too few free-flight frames in some split to measure the free-fall acceleration.",
+        )
         return out
     scale = train["scale"]
     low, high = (c / g for c in val["along_gravity_ci95"])
@@ -120,11 +132,16 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
 def sentence(found: dict) -> str:
     """One line for the report: X +- SEM vs meta per split, and what it means."""
     g = float(np.linalg.norm(found["meta_gravity"]))
-    parts = ", ".join(f"{name} {part['along_gravity']:.3f} ± {part['along_gravity_sem']:.3f}" for name, part in found["splits"].items())
+    parts = ", ".join(
+        f"{name} {part['along_gravity']:.3f} ± {part['along_gravity_sem']:.3f}"
+        for name, part in found["splits"].items()
+    )
     head = f"Free-flight acceleration along gravity (m/s², mean ± SE): {parts}; meta.gravity {g:.3f}"
     if not found["differs"]:
         return head + ": consistent with meta (val)."
     verdict = "confirmed on test" if found["confirmed"] else "NOT confirmed on test"
-    return (f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}. Either the true frame "
-            f"interval is {found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths are "
-            f"recorded at {found['length_scale']:.4f} × true, or meta.gravity is wrong.")
+    return (
+        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}. Either the true frame "
+        f"interval is {found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths are "
+        f"recorded at {found['length_scale']:.4f} × true, or meta.gravity is wrong."
+    )

@@ -1,4 +1,5 @@
 """The candidate effects and the base parameters as one vector of fit parameters, mapped to MuJoCo's model."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -40,29 +41,76 @@ def library(width: float, gravity_scale: float = 1.0) -> dict[str, Effect]:
     reach = 0.3 * width
     gravity_start = float(np.clip(gravity_scale, *GRAVITY_SCALE_BOUNDS))
     effects = [
-        Effect("air_drag", (Parameter("fluid_density", 0.0, 600.0, 0.0),), "quadratic air drag",
-               "option density (inertia-box fluid model)"),
+        Effect(
+            "air_drag",
+            (Parameter("fluid_density", 0.0, 600.0, 0.0),),
+            "quadratic air drag",
+            "option density (inertia-box fluid model)",
+        ),
         # Wind only acts through the fluid, so its fit starts with some fluid present (else it has no gradient).
-        Effect("wind", (Parameter("fluid_density", 0.0, 600.0, 30.0), Parameter("wind_x", -5.0, 5.0, 0.0), Parameter("wind_y", -5.0, 5.0, 0.0)),
-               "a steady wind", "option density + wind"),
-        Effect("rolling_friction", (Parameter("rolling_friction", 0.0, 0.05, 0.0),), "rolling resistance", "condim 6, rolling friction"),
-        Effect("torsional_friction", (Parameter("torsional_friction", 0.0, 0.05, 0.0),), "torsional (spin) friction", "condim 4, torsional friction"),
-        Effect("anisotropic_friction", (Parameter("friction_anisotropy", -2.0, 2.0, 0.0, log=True),),
-               "floor friction that differs between directions", "contact pair friction, x vs y tangent"),
-        Effect("com_offset", tuple(Parameter(f"com_offset_{axis}", -reach, reach, 0.0) for axis in "xyz"),
-               "a centre of mass away from the mesh's centroid", "body inertial pos"),
-        Effect("inertia_mismatch", tuple(Parameter(f"inertia_scale_{axis}", -0.7, 0.7, 0.0, log=True) for axis in "xyz"),
-               "an inertia other than the uniform-density mesh's", "body fullinertia"),
-        Effect("floor_offset", (Parameter("floor_offset", -reach, reach, 0.0),), "a floor higher or lower than recorded", "floor geom pos"),
-        Effect("floor_tilt", (Parameter("floor_tilt_x", -0.15, 0.15, 0.0), Parameter("floor_tilt_y", -0.15, 0.15, 0.0)),
-               "a tilted floor", "floor geom quat"),
+        Effect(
+            "wind",
+            (
+                Parameter("fluid_density", 0.0, 600.0, 30.0),
+                Parameter("wind_x", -5.0, 5.0, 0.0),
+                Parameter("wind_y", -5.0, 5.0, 0.0),
+            ),
+            "a steady wind",
+            "option density + wind",
+        ),
+        Effect(
+            "rolling_friction",
+            (Parameter("rolling_friction", 0.0, 0.05, 0.0),),
+            "rolling resistance",
+            "condim 6, rolling friction",
+        ),
+        Effect(
+            "torsional_friction",
+            (Parameter("torsional_friction", 0.0, 0.05, 0.0),),
+            "torsional (spin) friction",
+            "condim 4, torsional friction",
+        ),
+        Effect(
+            "anisotropic_friction",
+            (Parameter("friction_anisotropy", -2.0, 2.0, 0.0, log=True),),
+            "floor friction that differs between directions",
+            "contact pair friction, x vs y tangent",
+        ),
+        Effect(
+            "com_offset",
+            tuple(Parameter(f"com_offset_{axis}", -reach, reach, 0.0) for axis in "xyz"),
+            "a centre of mass away from the mesh's centroid",
+            "body inertial pos",
+        ),
+        Effect(
+            "inertia_mismatch",
+            tuple(Parameter(f"inertia_scale_{axis}", -0.7, 0.7, 0.0, log=True) for axis in "xyz"),
+            "an inertia other than the uniform-density mesh's",
+            "body fullinertia",
+        ),
+        Effect(
+            "floor_offset",
+            (Parameter("floor_offset", -reach, reach, 0.0),),
+            "a floor higher or lower than recorded",
+            "floor geom pos",
+        ),
+        Effect(
+            "floor_tilt",
+            (Parameter("floor_tilt_x", -0.15, 0.15, 0.0), Parameter("floor_tilt_y", -0.15, 0.15, 0.0)),
+            "a tilted floor",
+            "floor geom quat",
+        ),
         # Free flight shows it first (diagnosis.free_flight); modelled as MuJoCo's gravity, it also carries what a
         # time base off by sqrt(scale) does to contact (friction and impacts play out in the same scaled time). Its fit
         # starts from the free-flight measurement on train: the short-horizon loss is dominated by impacts, whose
         # squared residuals hide the small, steady free-flight signal from the screen's Gauss-Newton step.
-        Effect("gravity_scale", (Parameter("gravity_scale", *GRAVITY_SCALE_BOUNDS, gravity_start),),
-               "an apparent gravity other than meta.gravity: the tracker's time base (true frame interval sqrt(scale) dt) "
-               "or length scale off, or meta.gravity wrong", "option gravity x scale"),
+        Effect(
+            "gravity_scale",
+            (Parameter("gravity_scale", *GRAVITY_SCALE_BOUNDS, gravity_start),),
+            "an apparent gravity other than meta.gravity: the tracker's time base (true frame interval sqrt(scale) dt) "
+            "or length scale off, or meta.gravity wrong",
+            "option gravity x scale",
+        ),
     ]
     assert tuple(effect.name for effect in effects) == EFFECT_NAMES
     return {effect.name: effect for effect in effects}
@@ -93,10 +141,10 @@ class Hypothesis:
     def names(self) -> tuple[str, ...]:
         return tuple(effect.name for effect in self.effects)
 
-    def with_effect(self, effect: Effect) -> "Hypothesis":
+    def with_effect(self, effect: Effect) -> Hypothesis:
         return dataclasses.replace(self, effects=self.effects + (effect,))
 
-    def start(self, previous: "Hypothesis | None" = None, values: np.ndarray | None = None) -> np.ndarray:
+    def start(self, previous: Hypothesis | None = None, values: np.ndarray | None = None) -> np.ndarray:
         """Internal start vector: a previous hypothesis' fitted values where parameters are shared, else defaults."""
         known = dict(zip(previous.keys(), values)) if previous is not None else {}
         return np.array([known.get(key, p.start) for key, p in zip(self.keys(), self.parameters)])

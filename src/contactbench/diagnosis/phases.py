@@ -1,4 +1,5 @@
 """Contact phase of every frame, from the recordings alone: free flight, impact, sliding, rolling/tumbling, rest."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -39,9 +40,16 @@ def label_phases(dataset: Recordings, split: Split) -> np.ndarray:
         vertex_velocity = velocities[:, :, k, None, :3] + np.cross(velocities[:, :, k, None, 3:], arms)
         weights = touching / touching.sum(axis=-1, keepdims=True)
         slip = np.einsum("ntv,ntv->nt", np.linalg.norm(vertex_velocity[..., :2], axis=-1), weights)
-        lowest_vertical = np.take_along_axis(vertex_velocity[..., 2], heights.argmin(axis=-1)[..., None], axis=-1)[..., 0]
-        approaching = np.concatenate([np.zeros_like(lowest_vertical[:, :1], dtype=bool), lowest_vertical[:, :-1] < -IMPACT_SPEED], axis=1)
-        speed = np.maximum(np.linalg.norm(velocities[:, :, k, :3], axis=-1), np.linalg.norm(velocities[:, :, k, 3:], axis=-1) * width / 2)
+        lowest_vertical = np.take_along_axis(vertex_velocity[..., 2], heights.argmin(axis=-1)[..., None], axis=-1)[
+            ..., 0
+        ]
+        approaching = np.concatenate(
+            [np.zeros_like(lowest_vertical[:, :1], dtype=bool), lowest_vertical[:, :-1] < -IMPACT_SPEED], axis=1
+        )
+        speed = np.maximum(
+            np.linalg.norm(velocities[:, :, k, :3], axis=-1),
+            np.linalg.norm(velocities[:, :, k, 3:], axis=-1) * width / 2,
+        )
         phase = np.full(lowest.shape, FREE, dtype=np.int8)
         phase[in_contact] = ROLLING
         phase[in_contact & (slip > SLIP_SPEED)] = SLIDING

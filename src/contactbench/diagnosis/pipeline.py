@@ -1,4 +1,5 @@
 """The four steps of a diagnosis: fit the base simulator, locate the mismatch, name the missing physics, prove it."""
+
 from __future__ import annotations
 
 import logging
@@ -10,7 +11,7 @@ import numpy as np
 from contactbench.diagnosis import free_flight
 from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.library import Hypothesis, library
-from contactbench.diagnosis.phases import PHASES, FREE, label_phases
+from contactbench.diagnosis.phases import FREE, PHASES, label_phases
 from contactbench.diagnosis.segments import COMPONENTS, SegmentSimulator, cut_segments, residual_parts
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model
@@ -47,7 +48,9 @@ def _pick(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
     return np.sort(rng.choice(count, size=min(count, limit), replace=False))
 
 
-def bootstrap_ratio(base: np.ndarray, other: np.ndarray, draws: int, rng: np.random.Generator, confidence: float = 0.95) -> tuple[float, list[float]]:
+def bootstrap_ratio(
+    base: np.ndarray, other: np.ndarray, draws: int, rng: np.random.Generator, confidence: float = 0.95
+) -> tuple[float, list[float]]:
     """Relative improvement 1 - mean(other) / mean(base) over paired per-trajectory values, with a percentile
     interval from resampling trajectories."""
     base, other = np.asarray(base, float), np.asarray(other, float)
@@ -61,7 +64,15 @@ def bootstrap_ratio(base: np.ndarray, other: np.ndarray, draws: int, rng: np.ran
 class Diagnosis:
     """Runs the steps on a dataset the models may see (train, val, test; no meta.generator)."""
 
-    def __init__(self, dataset: Recordings, budget: Budget = Budget(), decision: Decision = Decision(), *, seed: int = 0, context_frames: int = 6):
+    def __init__(
+        self,
+        dataset: Recordings,
+        budget: Budget = Budget(),
+        decision: Decision = Decision(),
+        *,
+        seed: int = 0,
+        context_frames: int = 6,
+    ):
         if "generator" in dataset.meta:
             raise ContactbenchError("diagnosis must not see meta.generator: pass dataset.for_models([...])")
         self.dataset = dataset
@@ -72,14 +83,20 @@ class Diagnosis:
         self.seed = seed
         # First, model-free: do bodies in free flight fall at meta.gravity? (Its own generator: the steps' draws stay
         # as they were.) Its train measurement is where the gravity_scale effect's fit starts.
-        self.free_flight = free_flight.check(dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence)
+        self.free_flight = free_flight.check(
+            dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence
+        )
         self.library = library(float(dataset.widths().max()), self.free_flight["scale"] or 1.0)
         train, val = dataset.split("train"), dataset.split("val")
         fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
         val_rows = _pick(self.rng, val.n_trajectories, budget.val_trajectories)
-        self.train_fit = ResidualFit(SegmentSimulator(dataset, cut_segments(dataset, train.select(fit_rows), budget.segment_frames)))
+        self.train_fit = ResidualFit(
+            SegmentSimulator(dataset, cut_segments(dataset, train.select(fit_rows), budget.segment_frames))
+        )
         self.val_split = val.select(val_rows)
-        self.val_fit = ResidualFit(SegmentSimulator(dataset, cut_segments(dataset, self.val_split, budget.segment_frames)))
+        self.val_fit = ResidualFit(
+            SegmentSimulator(dataset, cut_segments(dataset, self.val_split, budget.segment_frames))
+        )
         self.timings: dict[str, float] = {}
 
     # ---------------------------------------------------------------- steps
@@ -130,14 +147,20 @@ class Diagnosis:
         cell_ci = np.percentile(shares, [2.5, 97.5], axis=0)
         segment_share = frames.sum(axis=0) / frames.sum()
         noise = self.noise_floor()
-        per_segment = table.sum(axis=0).sum(axis=1) / np.maximum(frames.sum(axis=0), 1)  # mean squared residual per segment
+        per_segment = table.sum(axis=0).sum(axis=1) / np.maximum(
+            frames.sum(axis=0), 1
+        )  # mean squared residual per segment
         worst_phase, worst_component = np.unravel_index(np.argmax(cell), cell.shape)
         return {
             "phase_shares": {p: float(phase_share[i]) for i, p in enumerate(PHASES)},
             "phase_shares_ci95": {p: [float(phase_ci[0, i]), float(phase_ci[1, i])] for i, p in enumerate(PHASES)},
             "segment_shares": {p: float(segment_share[i]) for i, p in enumerate(PHASES)},
             "cells": {f"{p}/{c}": float(cell[i, j]) for i, p in enumerate(PHASES) for j, c in enumerate(COMPONENTS)},
-            "cells_ci95": {f"{p}/{c}": [float(cell_ci[0, i, j]), float(cell_ci[1, i, j])] for i, p in enumerate(PHASES) for j, c in enumerate(COMPONENTS)},
+            "cells_ci95": {
+                f"{p}/{c}": [float(cell_ci[0, i, j]), float(cell_ci[1, i, j])]
+                for i, p in enumerate(PHASES)
+                for j, c in enumerate(COMPONENTS)
+            },
             "body_shares": (body_totals.sum(axis=0) / body_totals.sum()).tolist(),
             "angular_body_frame_shares": dict(zip("xyz", (body_axes / max(body_axes.sum(), 1e-300)).tolist())),
             "mean_squared_residual_per_segment": {p: float(per_segment[i]) for i, p in enumerate(PHASES)},
@@ -163,7 +186,7 @@ class Diagnosis:
         sigma = float(np.sqrt(np.mean(second[free] ** 2) / 6.0))  # var(x_{t+1} - 2 x_t + x_{t-1}) = 6 sigma^2 per axis
         half_width = float(self.dataset.widths().mean()) / 2
         steps = np.arange(1, self.budget.segment_frames + 1)
-        return float(3 * np.sum((2 + 2 * steps**2)) * (sigma / half_width) ** 2 * self.dataset.n_bodies)
+        return float(3 * np.sum(2 + 2 * steps**2) * (sigma / half_width) ** 2 * self.dataset.n_bodies)
 
     # ---------------------------------------------------------------- naming
 
@@ -184,13 +207,21 @@ class Diagnosis:
                 trial = current.with_effect(effect)
                 screened.append((self.train_fit.screen(trial, trial.start(current, values)), effect))
             screened.sort(key=lambda item: item[0])
-            log.info("screen (train loss after one step, current %.5f): %s", current_train, ", ".join(f"{e.name} {s:.5f}" for s, e in screened))
+            log.info(
+                "screen (train loss after one step, current %.5f): %s",
+                current_train,
+                ", ".join(f"{e.name} {s:.5f}" for s, e in screened),
+            )
             fitted = []
             for screened_loss, effect in screened[: self.budget.front_runners]:
                 trial = current.with_effect(effect)
-                trial_values, train_loss = self.train_fit.fit_effect(trial, trial.start(current, values), len(effect.parameters), self.budget.lsq_iterations)
+                trial_values, train_loss = self.train_fit.fit_effect(
+                    trial, trial.start(current, values), len(effect.parameters), self.budget.lsq_iterations
+                )
                 val = self.val_losses(trial, trial_values)
-                improvement, ci = bootstrap_ratio(current_val, val, self.budget.bootstrap, self.rng, self.decision.confidence)
+                improvement, ci = bootstrap_ratio(
+                    current_val, val, self.budget.bootstrap, self.rng, self.decision.confidence
+                )
                 extra = len(trial.parameters) - len(current.parameters)
                 delta_bic = n_residuals * np.log(train_loss / current_train) + extra * np.log(n_residuals)
                 closes = float((current_val.mean() - val.mean()) / base_val.mean())
@@ -209,9 +240,26 @@ class Diagnosis:
                 record["passes"] = bool(ci[0] > 0 and closes >= self.decision.margin and delta_bic < 0)
                 records.append(record)
                 fitted.append((record, trial, trial_values, val, train_loss))
-                log.info("  %s: val improvement %.3f [%.3f, %.3f], dBIC %.0f -> %s", effect.name, improvement, *ci, delta_bic, "passes" if record["passes"] else "no")
+                log.info(
+                    "  %s: val improvement %.3f [%.3f, %.3f], dBIC %.0f -> %s",
+                    effect.name,
+                    improvement,
+                    *ci,
+                    delta_bic,
+                    "passes" if record["passes"] else "no",
+                )
             for screened_loss, effect in screened[self.budget.front_runners :]:
-                records.append({"name": effect.name, "round": round_ + 1, "screen_train_loss": screened_loss, "val_improvement": None, "ci95": None, "passes": False, "screened_out": True})
+                records.append(
+                    {
+                        "name": effect.name,
+                        "round": round_ + 1,
+                        "screen_train_loss": screened_loss,
+                        "val_improvement": None,
+                        "ci95": None,
+                        "passes": False,
+                        "screened_out": True,
+                    }
+                )
             passing = [item for item in fitted if item[0]["passes"]]
             if not passing:
                 break
@@ -232,12 +280,26 @@ class Diagnosis:
 
     def heldout(self, hypothesis: Hypothesis, values: np.ndarray) -> dict:
         """Test-split scores of the paper's protocol (full rollouts from the context frames)."""
-        model = MujocoContactModel(name="+".join(("base",) + hypothesis.names), parameters=hypothesis.contact_parameters(values))
-        score = score_model(model, self.dataset, "test", self.context_frames, dataset_name=self.dataset.name, variant="")
-        return {"pos_err": score.metrics.per_trajectory["pos_err"], "rot_err_rad": score.metrics.per_trajectory["rot_err_rad"]}
+        model = MujocoContactModel(
+            name="+".join(("base",) + hypothesis.names), parameters=hypothesis.contact_parameters(values)
+        )
+        score = score_model(
+            model, self.dataset, "test", self.context_frames, dataset_name=self.dataset.name, variant=""
+        )
+        return {
+            "pos_err": score.metrics.per_trajectory["pos_err"],
+            "rot_err_rad": score.metrics.per_trajectory["rot_err_rad"],
+        }
 
 
-def run_diagnosis(dataset: Recordings, budget: Budget = Budget(), decision: Decision = Decision(), *, seed: int = 0, context_frames: int = 6) -> tuple[dict, dict]:
+def run_diagnosis(
+    dataset: Recordings,
+    budget: Budget = Budget(),
+    decision: Decision = Decision(),
+    *,
+    seed: int = 0,
+    context_frames: int = 6,
+) -> tuple[dict, dict]:
     """The diagnosis document (diagnosis.json) and the arrays its report draws."""
     started = time.perf_counter()
     steps = Diagnosis(dataset, budget, decision, seed=seed, context_frames=context_frames)
@@ -253,8 +315,16 @@ def run_diagnosis(dataset: Recordings, budget: Budget = Budget(), decision: Deci
     effects = []
     for effect in final.effects:
         chosen = next(c for c in candidates if c["name"] == effect.name and c.get("chosen"))
-        effects.append({"name": effect.name, "parameters": final.reported(final_values)[effect.name], "ci95": chosen["ci95"],
-                        "val_improvement": chosen["val_improvement"], "physics": effect.physics, "mujoco": effect.mujoco})
+        effects.append(
+            {
+                "name": effect.name,
+                "parameters": final.reported(final_values)[effect.name],
+                "ci95": chosen["ci95"],
+                "val_improvement": chosen["val_improvement"],
+                "physics": effect.physics,
+                "mujoco": effect.mujoco,
+            }
+        )
     document = {
         "verdict": "effect" if effects else "none",
         "effects": effects,
@@ -275,13 +345,27 @@ def run_diagnosis(dataset: Recordings, budget: Budget = Budget(), decision: Deci
             "rot_ci95": rot_ci,
         },
         "candidates": candidates,
-        "decision_rule": {"margin": decision.margin, "confidence": decision.confidence,
-                          "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
-                                  "closing >= margin of the base simulator's val loss, and delta BIC < 0 on train"},
+        "decision_rule": {
+            "margin": decision.margin,
+            "confidence": decision.confidence,
+            "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
+            "closing >= margin of the base simulator's val loss, and delta BIC < 0 on train",
+        },
         "budget": budget.__dict__,
         "robust_scale": steps.train_fit.scale,
         "evaluations": steps.train_fit.evaluations + steps.val_fit.evaluations,
-        "seconds": {**{k: round(v, 1) for k, v in steps.timings.items()}, "total_s": round(time.perf_counter() - started, 1)},
+        "seconds": {
+            **{k: round(v, 1) for k, v in steps.timings.items()},
+            "total_s": round(time.perf_counter() - started, 1),
+        },
     }
-    arrays = {"before": before, "after": after, "final": final, "final_values": final_values, "base": base, "base_values": base_values, "steps": steps}
+    arrays = {
+        "before": before,
+        "after": after,
+        "final": final,
+        "final_values": final_values,
+        "base": base,
+        "base_values": base_values,
+        "steps": steps,
+    }
     return document, arrays

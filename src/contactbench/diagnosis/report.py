@@ -1,4 +1,5 @@
 """diagnosis.json and report.md with the plots a person reads in a minute."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -34,12 +35,16 @@ def write_diagnosis(document: dict, arrays: dict, out_dir: Path) -> Path:
 def budget_sentence(document: dict) -> str:
     """The budget the verdict was reached at; at smoke, plainly that the verdict is not conclusive."""
     name, budget = document.get("budget_name", "custom"), document["budget"]
-    size = (f"{budget['fit_trajectories']} train tosses fitted, {budget['val_trajectories']} val tosses judging, "
-            f"{budget['base_evaluations']} base evaluations, at most {budget['max_effects']} effect(s) from "
-            f"{budget['front_runners']} front-runner(s), {budget['bootstrap']} bootstrap resamples")
+    size = (
+        f"{budget['fit_trajectories']} train tosses fitted, {budget['val_trajectories']} val tosses judging, "
+        f"{budget['base_evaluations']} base evaluations, at most {budget['max_effects']} effect(s) from "
+        f"{budget['front_runners']} front-runner(s), {budget['bootstrap']} bootstrap resamples"
+    )
     if not document.get("conclusive", True):
-        return (f"Budget: {name} ({size}). This checks that the pipeline runs, nothing more: the verdict is NOT "
-                f"conclusive; run budget=quick (the default) or budget=paper before reading anything into it.")
+        return (
+            f"Budget: {name} ({size}). This checks that the pipeline runs, nothing more: the verdict is NOT "
+            f"conclusive; run budget=quick (the default) or budget=paper before reading anything into it."
+        )
     return f"Budget: {name} ({size})."
 
 
@@ -54,55 +59,98 @@ def _verdict_sentence(document: dict) -> str:
     held = document["heldout"]
     where = document["located"]["where"]
     if document["verdict"] == "none":
-        return (f"No candidate effect improved the fit significantly and by the margin; the remaining mismatch lives in "
-                f"{where} (held-out position error {held['base']['pos_err']:.4f} widths).")
+        return (
+            f"No candidate effect improved the fit significantly and by the margin; the remaining mismatch lives in "
+            f"{where} (held-out position error {held['base']['pos_err']:.4f} widths)."
+        )
     names = " and ".join(f"{e['name']} ({e['physics']})" for e in document["effects"])
-    held_text = (f"held-out position error {held['base']['pos_err']:.4f} -> {held['augmented']['pos_err']:.4f} widths "
-                 f"({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%})")
+    held_text = (
+        f"held-out position error {held['base']['pos_err']:.4f} -> {held['augmented']['pos_err']:.4f} widths "
+        f"({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%})"
+    )
     if not held["confirmed"]:
-        return (f"Val data point to {names}, but the held-out test does not confirm it ({held_text}): treat it as "
-                f"unproven; the mismatch lives in {document['located']['where']}.")
+        return (
+            f"Val data point to {names}, but the held-out test does not confirm it ({held_text}): treat it as "
+            f"unproven; the mismatch lives in {document['located']['where']}."
+        )
     return f"Missing: {names}; modelling it changed the {held_text}; what remains lives in {document['located_after']['where']}."
 
 
 def _markdown(document: dict, figures: list[Path]) -> str:
     held = document["heldout"]
     lines = [
-        "# Diagnosis", "", summary_sentence(document), "",
-        budget_sentence(document), "",
-        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).", "",
-        "## First, model-free: free flight", "", document["free_flight"]["sentence"], "",
+        "# Diagnosis",
+        "",
+        summary_sentence(document),
+        "",
+        budget_sentence(document),
+        "",
+        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).",
+        "",
+        "## First, model-free: free flight",
+        "",
+        document["free_flight"]["sentence"],
+        "",
         *_free_flight_table(document["free_flight"]),
-        "## Held-out (test, full rollouts from the context frames)", "",
-        "| model | position error (widths) | rotation error (rad) |", "|---|---|---|",
+        "## Held-out (test, full rollouts from the context frames)",
+        "",
+        "| model | position error (widths) | rotation error (rad) |",
+        "|---|---|---|",
         f"| base | {held['base']['pos_err']:.4f} | {held['base']['rot_err_rad']:.4f} |",
-        f"| augmented | {held['augmented']['pos_err']:.4f} | {held['augmented']['rot_err_rad']:.4f} |", "",
-        f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired bootstrap over {held['n_trajectories']} test trajectories).", "",
-        "## Effects", "",
+        f"| augmented | {held['augmented']['pos_err']:.4f} | {held['augmented']['rot_err_rad']:.4f} |",
+        "",
+        f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired bootstrap over {held['n_trajectories']} test trajectories).",
+        "",
+        "## Effects",
+        "",
     ]
-    lines += [f"- `{e['name']}` ({e['mujoco']}): " + ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items()) for e in document["effects"]] or ["- none"]
-    lines += ["", "## Candidates (val)", "", "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | dBIC | passes |", "|---|---|---|---|---|---|---|"]
+    lines += [
+        f"- `{e['name']}` ({e['mujoco']}): " + ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
+        for e in document["effects"]
+    ] or ["- none"]
+    lines += [
+        "",
+        "## Candidates (val)",
+        "",
+        "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | dBIC | passes |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for c in document["candidates"]:
         if c.get("val_improvement") is None:
             continue
-        lines.append(f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | {c['closes_of_base_loss']:.3f} | "
-                     f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''} |")
+        lines.append(
+            f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | {c['closes_of_base_loss']:.3f} | "
+            f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''} |"
+        )
     located = document["located"]
-    lines += ["", "## Where the base simulator misses (val, squared short-horizon residual)", "", "| phase | share | 95% CI | share of segments | above noise floor |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Where the base simulator misses (val, squared short-horizon residual)",
+        "",
+        "| phase | share | 95% CI | share of segments | above noise floor |",
+        "|---|---|---|---|---|",
+    ]
     for p in PHASES:
         ci = located["phase_shares_ci95"][p]
-        lines.append(f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | {located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |")
+        lines.append(
+            f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | {located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |"
+        )
     lines += ["", *[f"![{path.stem}](figures/{path.name})" for path in figures], ""]
     return "\n".join(lines)
 
 
 def _free_flight_table(found: dict) -> list[str]:
-    lines = ["| split | tosses | free-flight frames | acceleration x, y, z (m/s²) | along gravity, 95% CI |", "|---|---|---|---|---|"]
+    lines = [
+        "| split | tosses | free-flight frames | acceleration x, y, z (m/s²) | along gravity, 95% CI |",
+        "|---|---|---|---|---|",
+    ]
     for name, part in found["splits"].items():
         if part.get("n_frames"):
             ci = part["along_gravity_ci95"]
-            lines.append(f"| {name} | {part['n_trajectories']} | {part['n_frames']} | {', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
-                         f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] |")
+            lines.append(
+                f"| {name} | {part['n_trajectories']} | {part['n_frames']} | {', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
+                f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] |"
+            )
     return lines + [""]
 
 
@@ -113,7 +161,14 @@ def _phase_components(located: dict, path: Path) -> Path:
     width = 0.8 / len(COMPONENTS)
     for j, component in enumerate(COMPONENTS):
         x = np.arange(len(PHASES)) + j * width
-        axis.bar(x, cells[:, j], width, label=component, yerr=[cells[:, j] - errors[:, j, 0], errors[:, j, 1] - cells[:, j]], capsize=2)
+        axis.bar(
+            x,
+            cells[:, j],
+            width,
+            label=component,
+            yerr=[cells[:, j] - errors[:, j, 0], errors[:, j, 1] - cells[:, j]],
+            capsize=2,
+        )
     axis.set_xticks(np.arange(len(PHASES)) + 0.4 - width / 2, PHASES)
     axis.set_ylabel("share of squared residual")
     axis.set_title("Base simulator: residual by contact phase x component (val, 95% CI)")
@@ -162,7 +217,16 @@ def _trajectory(arrays: dict, path: Path) -> Path:
     for axis, coordinate, label in ((axes[0], 0, "x (m)"), (axes[1], 2, "z (m)")):
         for phase, colour in zip(range(1, len(PHASES)), ("tab:red", "tab:orange", "tab:green", "tab:gray")):
             mask = phases[:length] == phase
-            axis.fill_between(time, 0, 1, where=mask, transform=axis.get_xaxis_transform(), color=colour, alpha=0.15, label=PHASES[phase])
+            axis.fill_between(
+                time,
+                0,
+                1,
+                where=mask,
+                transform=axis.get_xaxis_transform(),
+                color=colour,
+                alpha=0.15,
+                label=PHASES[phase],
+            )
         axis.plot(time, test.poses[0, :length, 0, coordinate], "k", label="recorded")
         axis.plot(time, before[:length, 0, coordinate], "--", label="base")
         axis.plot(time, after[:length, 0, coordinate], ":", label="augmented")
@@ -182,7 +246,13 @@ def _candidates(candidates: list[dict], margin: float, path: Path) -> Path | Non
     values = np.array([c["closes_of_base_loss"] for c in scored])
     low = np.array([c["closes_ci95"][0] for c in scored])
     high = np.array([c["closes_ci95"][1] for c in scored])
-    axis.barh(labels, values, xerr=[values - low, high - values], capsize=3, color=["tab:green" if c["passes"] else "tab:gray" for c in scored])
+    axis.barh(
+        labels,
+        values,
+        xerr=[values - low, high - values],
+        capsize=3,
+        color=["tab:green" if c["passes"] else "tab:gray" for c in scored],
+    )
     axis.axvline(margin, color="k", ls="--", lw=0.8, label=f"margin {margin:.0%}")
     axis.set_xlabel("share of the base val loss closed (95% CI)")
     axis.legend(fontsize=7)

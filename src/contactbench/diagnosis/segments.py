@@ -1,4 +1,5 @@
 """Short-horizon residuals: restart the simulator from the recorded state every few frames and compare."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -51,7 +52,16 @@ def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: in
     # The phase a body spends a segment in: impact if it has one anywhere, else its most frequent phase.
     counts = (labels[trajectory[:, None], window][..., None] == np.arange(len(PHASES))).sum(axis=1)  # [M, K, phases]
     phase = np.where(counts[..., IMPACT] > 0, IMPACT, counts.argmax(axis=-1)).astype(np.int8)
-    return Segments(trajectory, start, split.poses[trajectory, start], velocities[trajectory, start], truth, phase, length, dataset.widths())
+    return Segments(
+        trajectory,
+        start,
+        split.poses[trajectory, start],
+        velocities[trajectory, start],
+        truth,
+        phase,
+        length,
+        dataset.widths(),
+    )
 
 
 def residual_vectors(segments: Segments, predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,5 @@
 """The paper's figures (1, 2, 3, 5, 7a-c) and Table 3, drawn from the metrics.json / per_trajectory.csv of test runs."""
+
 from __future__ import annotations
 
 import csv
@@ -12,7 +13,6 @@ matplotlib.use("Agg")  # files only: no display on CI or a cluster node
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-
 # dataset -> (varied parameter, figure title as in the paper)
 SWEEPS = {
     "bouncycubes": ("restitution", "Fig. 1: effect of restitution (BOUNCYCUBES)"),
@@ -20,7 +20,11 @@ SWEEPS = {
     "polyhedra": ("faces", "Fig. 3: effect of geometry (POLYHEDRA)"),
     "multicubes": ("bodies", "Fig. 5: effect of the number of bodies (MULTICUBES)"),
 }
-PANELS = [("pos_err", "position error (widths)"), ("rot_err_rad", "rotation error (rad)"), ("floor_penetration_m", "floor penetration (m)")]
+PANELS = [
+    ("pos_err", "position error (widths)"),
+    ("rot_err_rad", "rotation error (rad)"),
+    ("floor_penetration_m", "floor penetration (m)"),
+]
 # Table 3's rule: a dimension matters for a method when its mean test position error moves by more than this
 # fraction of its smallest value across the dimension's variants.
 IMPORTANCE_THRESHOLD = 0.25
@@ -78,7 +82,9 @@ def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
     return save_figure(figure, path)
 
 
-def per_frame_figure(runs: list[Run], dataset: str, key: str, label: str, title: str, path: Path, values: list[float] | None = None) -> Path | None:
+def per_frame_figure(
+    runs: list[Run], dataset: str, key: str, label: str, title: str, path: Path, values: list[float] | None = None
+) -> Path | None:
     """Per-frame curves (Fig. 7a: inter-body penetration, 7c: lowest vertex height) per method and variant."""
     chosen = [run for run in runs if run.summary["dataset"] == dataset and key in run.summary["per_frame"]]
     chosen = [run for run in chosen if values is None or run.value in values]
@@ -130,9 +136,28 @@ def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
 def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str, str]]]:
     runs = load_test_runs(root)
     drawn = [sweep_figure(runs, dataset, out_dir / f"{dataset}.png") for dataset in SWEEPS]
-    drawn.append(per_frame_figure(runs, "multicubes", "interbody_penetration_m", "max inter-body penetration (m)", "Fig. 7a: inter-body penetration", out_dir / "fig7a_interbody_penetration.png"))
+    drawn.append(
+        per_frame_figure(
+            runs,
+            "multicubes",
+            "interbody_penetration_m",
+            "max inter-body penetration (m)",
+            "Fig. 7a: inter-body penetration",
+            out_dir / "fig7a_interbody_penetration.png",
+        )
+    )
     drawn.append(pairwise_collisions_figure(runs, out_dir / "fig7b_pairwise_collisions.png"))
-    drawn.append(per_frame_figure(runs, "frictioncubes", "min_vertex_height_m", "lowest vertex height (m)", "Fig. 7c: lowest vertex height, mu = 0 and 1", out_dir / "fig7c_lowest_vertex.png", values=[0.0, 1.0]))
+    drawn.append(
+        per_frame_figure(
+            runs,
+            "frictioncubes",
+            "min_vertex_height_m",
+            "lowest vertex height (m)",
+            "Fig. 7c: lowest vertex height, mu = 0 and 1",
+            out_dir / "fig7c_lowest_vertex.png",
+            values=[0.0, 1.0],
+        )
+    )
     return [path for path in drawn if path is not None], importance_table(runs)
 
 

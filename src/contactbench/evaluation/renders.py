@@ -3,6 +3,7 @@
 Every model is rebuilt from its run folder (`.hydra/config.yaml` + fitted checkpoint, as evaluate.py does) and rolled
 out again on a few test trajectories, so renders need only the run folders and the dataset.
 """
+
 from __future__ import annotations
 
 import json
@@ -46,7 +47,9 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
         dataset = runs.load_dataset(cfg, ["test"])
         test = dataset.split("test").select(range(min(trajectories, dataset.split("test").n_trajectories)))
         model = runs.load_fitted(cfg, dataset, train_dir)
-        predicted[cfg.model.name] = model.rollout(dataset.for_models(), make_context(test, dataset.dt, cfg.context_frames))
+        predicted[cfg.model.name] = model.rollout(
+            dataset.for_models(), make_context(test, dataset.dt, cfg.context_frames)
+        )
         truth, lengths = test.poses, test.lengths
         label = f"{cfg.dataset.name} {cfg.dataset.variant}"
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
@@ -58,13 +61,18 @@ def _draw(axis, poses: np.ndarray, meshes: list[Mesh], colour: str, alpha: float
         if not np.isfinite(poses[k]).all():
             continue
         corners = world_vertices(poses[k], mesh.vertices)
-        faces = Poly3DCollection([corners[face] for face in mesh.faces], facecolor=colour, edgecolor="k", linewidths=0.2, alpha=alpha)
+        faces = Poly3DCollection(
+            [corners[face] for face in mesh.faces], facecolor=colour, edgecolor="k", linewidths=0.2, alpha=alpha
+        )
         faces.set_label(label if k == 0 else None)
         axis.add_collection3d(faces)
 
 
 def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
-    centres = np.concatenate([rollouts.truth[n, : rollouts.lengths[n], :, :3].reshape(-1, 3)] + [p[n, : rollouts.lengths[n], :, :3].reshape(-1, 3) for p in rollouts.predicted.values()])
+    centres = np.concatenate(
+        [rollouts.truth[n, : rollouts.lengths[n], :, :3].reshape(-1, 3)]
+        + [p[n, : rollouts.lengths[n], :, :3].reshape(-1, 3) for p in rollouts.predicted.values()]
+    )
     centres = centres[np.isfinite(centres).all(axis=1)]
     middle = np.median(centres, axis=0)
     reach = max(0.25, float(np.percentile(np.abs(centres[:, :2] - middle[:2]), 95)) + 0.1)
@@ -120,7 +128,12 @@ def rollout_gif(rollouts: Rollouts, path: Path, toss: int = 0, every: int = 3) -
 
 
 # Which variants the report renders (the paper's Figs. 4 and 6 show a single cube and several), when present.
-RENDERED = (("frictioncubes", "friction=0.5"), ("multicubes", "bodies=3"), ("polyhedra", "faces=12"), ("contactnets_cube", None))
+RENDERED = (
+    ("frictioncubes", "friction=0.5"),
+    ("multicubes", "bodies=3"),
+    ("polyhedra", "faces=12"),
+    ("contactnets_cube", None),
+)
 
 
 def render_report(root: Path, out_dir: Path) -> list[Path]:
@@ -131,7 +144,9 @@ def render_report(root: Path, out_dir: Path) -> list[Path]:
         if (run_dir / ".hydra" / "config.yaml").is_file():
             summary = json.loads(metrics.read_text())
             groups.setdefault((summary["dataset"], summary["variant"]), []).append(run_dir)
-    chosen = [key for key in groups if any(key[0] == d and (v is None or key[1] == v) for d, v in RENDERED)] or list(groups)[:1]
+    chosen = [key for key in groups if any(key[0] == d and (v is None or key[1] == v) for d, v in RENDERED)] or list(
+        groups
+    )[:1]
     drawn = []
     for dataset, variant in chosen:
         try:

@@ -1,4 +1,5 @@
 """Collect every metrics.json under a folder into one results table (Markdown), and print where it is."""
+
 from __future__ import annotations
 
 import argparse
@@ -32,7 +33,9 @@ def collect(root: Path) -> list[dict]:
         row = json.loads(path.read_text())
         missing = [key for key, _, _ in COLUMNS if key not in row]
         if missing:
-            raise ContactbenchError(f"{path}: field {missing[0]!r} missing (not a metrics.json written by evaluate.py/train.py)")
+            raise ContactbenchError(
+                f"{path}: field {missing[0]!r} missing (not a metrics.json written by evaluate.py/train.py)"
+            )
         rows.append(row)
     return sorted(rows, key=lambda r: (r["dataset"], r["variant"], r["split"], r["model"]))
 
@@ -53,7 +56,10 @@ def markdown_table(rows: list[dict]) -> str:
 def importance_markdown(table: dict[str, dict[str, str]]) -> str:
     dimensions = [parameter for parameter, _ in SWEEPS.values()]
     lines = ["| method | " + " | ".join(dimensions) + " |", "|" + "---|" * (len(dimensions) + 1)]
-    lines += [f"| {model} | " + " | ".join(verdicts.get(d, "N/A") for d in dimensions) + " |" for model, verdicts in sorted(table.items())]
+    lines += [
+        f"| {model} | " + " | ".join(verdicts.get(d, "N/A") for d in dimensions) + " |"
+        for model, verdicts in sorted(table.items())
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -97,12 +103,18 @@ def _html(markdown: str) -> str:
         if line.startswith("|---"):
             continue
         if line.startswith("|"):
-            body.append("<tr>" + "".join(f"<td>{html.escape(cell.strip())}</td>" for cell in line.strip("|").split("|")) + "</tr>")
+            body.append(
+                "<tr>"
+                + "".join(f"<td>{html.escape(cell.strip())}</td>" for cell in line.strip("|").split("|"))
+                + "</tr>"
+            )
         elif line.startswith("#"):
             level = len(line) - len(line.lstrip("#"))
             body.append(f"<h{level}>{html.escape(line.lstrip('# '))}</h{level}>")
         elif line.startswith("!["):
-            body.append(f'<p><img src="{html.escape(line[line.index("(") + 1 : line.index(")")])}" style="max-width:100%"></p>')
+            body.append(
+                f'<p><img src="{html.escape(line[line.index("(") + 1 : line.index(")")])}" style="max-width:100%"></p>'
+            )
         elif line.strip():
             body.append(f"<p>{html.escape(line)}</p>")
     if in_table:

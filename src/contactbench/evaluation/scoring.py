@@ -1,4 +1,5 @@
 """Score a contact model on one split with the shared protocol and write metrics.json and its CSVs."""
+
 from __future__ import annotations
 
 import csv
@@ -29,7 +30,9 @@ class Score:
         return {**self.header, **self.metrics.summary, "rollout_seconds": round(self.rollout_seconds, 3)}
 
 
-def score_model(model: ContactModel, dataset: Recordings, split: str, context_frames: int, *, dataset_name: str, variant: str) -> Score:
+def score_model(
+    model: ContactModel, dataset: Recordings, split: str, context_frames: int, *, dataset_name: str, variant: str
+) -> Score:
     """Roll the model out from the first `context_frames` frames of every trajectory in `split` and score the rest."""
     recorded = dataset.split(split)
     context = make_context(recorded, dataset.dt, context_frames)
@@ -81,14 +84,24 @@ def write_score(score: Score, out_dir: Path) -> dict:
     out_dir = Path(out_dir)
     per_frame = {"frame": np.arange(len(next(iter(score.metrics.per_frame.values())))), **score.metrics.per_frame}
     document = {key: _json_number(value) for key, value in score.summary().items()}
-    document["per_frame"] = {key: [_json_number(x) for x in np.asarray(values).tolist()] for key, values in per_frame.items()}
+    document["per_frame"] = {
+        key: [_json_number(x) for x in np.asarray(values).tolist()] for key, values in per_frame.items()
+    }
     atomic.write_json(out_dir / "metrics.json", document)
     atomic.write_text(out_dir / "per_frame.csv", _csv_text(per_frame))
-    atomic.write_text(out_dir / "per_trajectory.csv", _csv_text({"trajectory": np.arange(score.header["n_trajectories"]), **score.metrics.per_trajectory}))
+    atomic.write_text(
+        out_dir / "per_trajectory.csv",
+        _csv_text({"trajectory": np.arange(score.header["n_trajectories"]), **score.metrics.per_trajectory}),
+    )
     log.info(
         "%s on %s/%s %s (%d trajectories): pos_err %.4f  rot_err %.4f rad  floor penetration %.2e m",
-        score.header["model"], score.header["dataset"], score.header["variant"], score.header["split"],
-        score.header["n_trajectories"], score.metrics.summary["pos_err"], score.metrics.summary["rot_err_rad"],
+        score.header["model"],
+        score.header["dataset"],
+        score.header["variant"],
+        score.header["split"],
+        score.header["n_trajectories"],
+        score.metrics.summary["pos_err"],
+        score.metrics.summary["rot_err_rad"],
         score.metrics.summary["floor_penetration_m"],
     )
     return document

@@ -1,4 +1,5 @@
 """PyBullet toss simulation; the only module that touches PyBullet and its x, y, z, w quaternions."""
+
 from __future__ import annotations
 
 import itertools
@@ -22,19 +23,23 @@ _flatten = itertools.chain.from_iterable
 # PyBullet defaults replaced on purpose for every object: 0.04 linear and angular air drag nobody asked for, and
 # a 1 mm collision margin that would keep every object hovering 1 mm above the floor. (The AABB-box inertia
 # default is replaced too, by the mesh's own, in _build.)
-BODY_DYNAMICS_OVERRIDES = MappingProxyType({
-    "rollingFriction": 0.0,
-    "spinningFriction": 0.0,
-    "linearDamping": 0.0,
-    "angularDamping": 0.0,
-    "collisionMargin": 0.0,
-})
+BODY_DYNAMICS_OVERRIDES = MappingProxyType(
+    {
+        "rollingFriction": 0.0,
+        "spinningFriction": 0.0,
+        "linearDamping": 0.0,
+        "angularDamping": 0.0,
+        "collisionMargin": 0.0,
+    }
+)
 
 
 class BulletScene:
     """A private PyBullet DIRECT world with a floor and `spec.bodies` copies of `mesh`, reusable across tosses."""
 
-    def __init__(self, mesh: Mesh, spec: SceneSpec, settings: BulletSettings = BulletSettings(), effects: ConcealedEffects = NONE):
+    def __init__(
+        self, mesh: Mesh, spec: SceneSpec, settings: BulletSettings = BulletSettings(), effects: ConcealedEffects = NONE
+    ):
         com, inertia = mesh.mass_properties(settings.mass)
         if np.linalg.norm(com) > 1e-9 * mesh.width:
             raise ValueError(f"mesh frame must sit at the centre of mass; it is off by {com} m")
@@ -69,7 +74,9 @@ class BulletScene:
             deterministicOverlappingPairs=1,
             physicsClientId=client,
         )
-        pybullet.setGravity(*(np.asarray(settings.gravity) * self.effects.gravity_scale).tolist(), physicsClientId=client)
+        pybullet.setGravity(
+            *(np.asarray(settings.gravity) * self.effects.gravity_scale).tolist(), physicsClientId=client
+        )
         floor_shape = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
         floor = pybullet.createMultiBody(
             0.0,
@@ -81,7 +88,8 @@ class BulletScene:
         # PyBullet combines two touching materials by multiplying their frictions and their restitutions, so
         # with the floor at 1.0 and 1.0 the object's own coefficients are the ones in effect.
         pybullet.changeDynamics(
-            floor, -1,
+            floor,
+            -1,
             lateralFriction=settings.floor_friction,
             restitution=settings.floor_restitution,
             rollingFriction=0.0,
@@ -90,7 +98,9 @@ class BulletScene:
             physicsClientId=client,
         )
         # Without indices PyBullet wraps the vertices in a convex hull: exactly our solids.
-        body_shape = pybullet.createCollisionShape(pybullet.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=client)
+        body_shape = pybullet.createCollisionShape(
+            pybullet.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=client
+        )
         bodies = []
         for k in range(spec.bodies):
             body = pybullet.createMultiBody(
@@ -101,7 +111,8 @@ class BulletScene:
                 physicsClientId=client,
             )
             pybullet.changeDynamics(
-                body, -1,
+                body,
+                -1,
                 mass=settings.mass,
                 localInertiaDiagonal=(self.inertia_diagonal * self.effects.inertia_scale).tolist(),
                 lateralFriction=spec.friction,
@@ -129,7 +140,7 @@ class BulletScene:
             pybullet.disconnect(physicsClientId=self.client)
             self.client = -1
 
-    def __enter__(self) -> "BulletScene":
+    def __enter__(self) -> BulletScene:
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -141,18 +152,24 @@ class BulletScene:
         velocities = np.asarray(velocities, dtype=np.float64)
         count = len(self.bodies)
         if poses.shape != (count, 7) or velocities.shape != (count, 6):
-            raise ValueError(f"expected poses [{count}, 7] and velocities [{count}, 6], got {poses.shape} and {velocities.shape}")
+            raise ValueError(
+                f"expected poses [{count}, 7] and velocities [{count}, 6], got {poses.shape} and {velocities.shape}"
+            )
         client = self.client
         # Contact manifolds survive a teleport and warm-start the next solve, so a toss would depend on the one
         # before it. Parking every body far apart and running collision detection once empties all manifolds.
         for k, body in enumerate(self.bodies):
-            pybullet.resetBasePositionAndOrientation(body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client)
+            pybullet.resetBasePositionAndOrientation(
+                body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client
+            )
         pybullet.performCollisionDetection(physicsClientId=client)
         orientations_xyzw = rotations.wxyz_to_xyzw(poses[:, 3:])
         if self.com_offset.any():  # PyBullet places and reports a body by its centre of mass
             offset = self._offset_world(poses[:, 3:])
             poses = np.concatenate([poses[:, :3] + offset, poses[:, 3:]], axis=1)
-            velocities = np.concatenate([velocities[:, :3] + np.cross(velocities[:, 3:], offset), velocities[:, 3:]], axis=1)
+            velocities = np.concatenate(
+                [velocities[:, :3] + np.cross(velocities[:, 3:], offset), velocities[:, 3:]], axis=1
+            )
         for body, pose, orientation, velocity in zip(self.bodies, poses, orientations_xyzw, velocities):
             pybullet.resetBasePositionAndOrientation(body, pose[:3], orientation, physicsClientId=client)
             pybullet.resetBaseVelocity(body, velocity[:3], velocity[3:], physicsClientId=client)
@@ -180,7 +197,11 @@ class BulletScene:
             raise ValueError(f"frames must be at least 1, got {frames}")
         self.set_state(initial_poses, initial_velocities)
         client, bodies = self.client, self.bodies
-        step, read_pose, read_velocity = pybullet.stepSimulation, pybullet.getBasePositionAndOrientation, pybullet.getBaseVelocity
+        step, read_pose, read_velocity = (
+            pybullet.stepSimulation,
+            pybullet.getBasePositionAndOrientation,
+            pybullet.getBaseVelocity,
+        )
         # The two state reads per body and frame alone cost about half as much as stepping (1 us each through
         # PyBullet's command layer); keep everything else out of the loop: collect PyBullet's tuples, convert once.
         readings = []
@@ -197,7 +218,9 @@ class BulletScene:
                 record(read_velocity(body, client))
             if drag:
                 drag(readings[-2 * len(bodies) :])
-        flat = np.fromiter(_flatten(_flatten(readings)), dtype=np.float64, count=frames * len(bodies) * ENGINE_STATE_SIZE)
+        flat = np.fromiter(
+            _flatten(_flatten(readings)), dtype=np.float64, count=frames * len(bodies) * ENGINE_STATE_SIZE
+        )
         states = flat.reshape(frames, len(bodies), ENGINE_STATE_SIZE)
         # Torques are taken about the centres of mass, which PyBullet reports: before moving to the mesh frames.
         contacts = self._contact_wrenches(contact_log, states[..., :3]) if record_contacts else None
@@ -214,7 +237,9 @@ class BulletScene:
             spin = rotation.T @ np.array(velocity[1])
             force = rotation @ (-self.drag_force * np.abs(relative) * relative)
             torque = rotation @ (-self.drag_torque * np.abs(spin) * spin)
-            pybullet.applyExternalForce(body, -1, force.tolist(), pose[0], pybullet.WORLD_FRAME, physicsClientId=self.client)
+            pybullet.applyExternalForce(
+                body, -1, force.tolist(), pose[0], pybullet.WORLD_FRAME, physicsClientId=self.client
+            )
             pybullet.applyExternalTorque(body, -1, torque.tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client)
 
     def _mesh_frame_states(self, states: np.ndarray) -> np.ndarray:
@@ -246,10 +271,9 @@ class BulletScene:
         point_a = np.array([c[5] for c in points])
         point_b = np.array([c[6] for c in points])
         normal_force = np.array([c[9] for c in points])[:, None] * np.array([c[7] for c in points])
-        friction_force = (
-            np.array([c[10] for c in points])[:, None] * np.array([c[11] for c in points])
-            + np.array([c[12] for c in points])[:, None] * np.array([c[13] for c in points])
-        )
+        friction_force = np.array([c[10] for c in points])[:, None] * np.array([c[11] for c in points]) + np.array(
+            [c[12] for c in points]
+        )[:, None] * np.array([c[13] for c in points])
         padded_centres = np.concatenate([centres, np.zeros((frames, 1, 3))], axis=1)
         for body, point, sign in ((body_a, point_a, 1.0), (body_b, point_b, -1.0)):
             arm = point - padded_centres[frame - 1, body]

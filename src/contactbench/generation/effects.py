@@ -1,4 +1,5 @@
 """Physics switched on in PyBullet and left out of the recordings' meta: hidden truths for testing diagnose.py."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -47,7 +48,7 @@ class ConcealedEffects:
         freeze_numbers(self, vectors=("wind", "floor_friction_scale", "com_offset", "inertia_scale", "floor_tilt"))
 
     @classmethod
-    def named(cls, names, strength: float = 1.0) -> "ConcealedEffects":
+    def named(cls, names, strength: float = 1.0) -> ConcealedEffects:
         """The effects `names` (from EFFECT_NAMES) at `strength` times their reference size."""
         unknown = [name for name in names if name not in EFFECT_NAMES]
         if unknown:
@@ -87,9 +88,13 @@ class ConcealedEffects:
             "wind": {"fluid_density": self.fluid_density, "wind_x": self.wind[0], "wind_y": self.wind[1]},
             "rolling_friction": {"rolling_friction": self.rolling_friction},
             "torsional_friction": {"torsional_friction": self.spinning_friction},
-            "anisotropic_friction": {"friction_anisotropy": self.floor_friction_scale[0] / self.floor_friction_scale[1]},
+            "anisotropic_friction": {
+                "friction_anisotropy": self.floor_friction_scale[0] / self.floor_friction_scale[1]
+            },
             "com_offset": dict(zip(("com_offset_x", "com_offset_y", "com_offset_z"), self.com_offset)),
-            "inertia_mismatch": dict(zip(("inertia_scale_x", "inertia_scale_y", "inertia_scale_z"), self.inertia_scale)),
+            "inertia_mismatch": dict(
+                zip(("inertia_scale_x", "inertia_scale_y", "inertia_scale_z"), self.inertia_scale)
+            ),
             "floor_offset": {"floor_offset": self.floor_offset},
             "floor_tilt": {"floor_tilt_x": self.floor_tilt[0], "floor_tilt_y": self.floor_tilt[1]},
             "gravity_scale": {"gravity_scale": self.gravity_scale},

@@ -1,4 +1,5 @@
 """Benchmark dataset generation: seed, sample and simulate every toss of a scene variant, write the recordings."""
+
 from __future__ import annotations
 
 import contextlib
@@ -8,16 +9,22 @@ import importlib.metadata
 import json
 import multiprocessing
 import os
+from collections.abc import Mapping
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 from tqdm import tqdm
 
+from contactbench.generation.bullet import (
+    BODY_DYNAMICS_OVERRIDES,
+    CONTACT_KEYS,
+    ENGINE_STATE_SIZE,
+    BulletScene,
+    recorded_motion,
+)
 from contactbench.generation.effects import NONE, ConcealedEffects
-from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, CONTACT_KEYS, ENGINE_STATE_SIZE, BulletScene, recorded_motion
 from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, solid
 from contactbench.meshes import Mesh
@@ -83,7 +90,9 @@ class _TossRunner:
         job, frames, bodies = self.job, self.job.settings.frames, self.job.spec.bodies
         states = np.empty((len(tosses), frames, bodies, ENGINE_STATE_SIZE))
         initial_orientations = np.empty((len(tosses), bodies, 4))
-        contacts = {key: np.empty((len(tosses), frames, bodies, 3)) for key in CONTACT_KEYS} if job.record_contacts else {}
+        contacts = (
+            {key: np.empty((len(tosses), frames, bodies, 3)) for key in CONTACT_KEYS} if job.record_contacts else {}
+        )
         for row, toss in enumerate(tosses):
             try:
                 poses, velocities = sample_initial_state(job.spec, job.mesh, toss_rng(job.derived_seed, toss))
@@ -235,7 +244,12 @@ def generate_dataset(
         "gravity": list(settings.gravity),
         "floor_z": 0.0,
         "bodies": [
-            {"name": f"{solid_name}_{k}", "mesh": mesh_path, "mass": settings.mass, "inertia_diagonal": np.diag(inertia).tolist()}
+            {
+                "name": f"{solid_name}_{k}",
+                "mesh": mesh_path,
+                "mass": settings.mass,
+                "inertia_diagonal": np.diag(inertia).tolist(),
+            }
             for k in range(spec.bodies)
         ],
         "splits": {split_name: f"{split_name}.npz" for split_name, _ in sizes},

@@ -1,4 +1,5 @@
 """Toss scene settings (paper Table 2a/2b) and sampling of non-overlapping initial states."""
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,9 @@ class BulletSettings:
     frames: int = 140  # recorded frames per toss, frame 0 being the initial state
 
     def __post_init__(self) -> None:
-        _set_floats(self, "dt", "restitution_velocity_threshold", "floor_friction", "floor_restitution", "mass", "width")
+        _set_floats(
+            self, "dt", "restitution_velocity_threshold", "floor_friction", "floor_restitution", "mass", "width"
+        )
         _set_vectors(self, "gravity")
         object.__setattr__(self, "frames", int(self.frames))
 
@@ -44,7 +47,9 @@ class SceneSpec:
     restitution: float
     faces: int = 6  # which solid (6 = cube), see solids.SOLID_NAMES
     bodies: int = 1
-    center_bias_speed: float = 0.0  # m/s subtracted from each body's xy velocity along its direction from the centre; 0 disables
+    center_bias_speed: float = (
+        0.0  # m/s subtracted from each body's xy velocity along its direction from the centre; 0 disables
+    )
     position_low: tuple[float, float, float] = (-0.4, -0.4, 0.13)
     position_high: tuple[float, float, float] = (0.4, 0.4, 0.15)
     velocity_low: tuple[float, float, float] = (-1.2, -1.2, 0.0)
@@ -61,18 +66,30 @@ class SceneSpec:
             object.__setattr__(self, key, int(getattr(self, key)))
         # Physically meaningless values would still simulate (PyBullet takes them) and score: refuse them here.
         if not (math.isfinite(self.friction) and self.friction >= 0):
-            raise ContactbenchError(f"scene {self.name!r}: friction is {self.friction:g} (expected a friction coefficient >= 0)")
+            raise ContactbenchError(
+                f"scene {self.name!r}: friction is {self.friction:g} (expected a friction coefficient >= 0)"
+            )
         if not (0 <= self.restitution <= 1):
-            raise ContactbenchError(f"scene {self.name!r}: restitution is {self.restitution:g} (expected a coefficient from 0 to 1)")
+            raise ContactbenchError(
+                f"scene {self.name!r}: restitution is {self.restitution:g} (expected a coefficient from 0 to 1)"
+            )
         if not (math.isfinite(self.center_bias_speed) and self.center_bias_speed >= 0):
-            raise ContactbenchError(f"scene {self.name!r}: center_bias_speed is {self.center_bias_speed:g} (expected a speed >= 0 in m/s)")
+            raise ContactbenchError(
+                f"scene {self.name!r}: center_bias_speed is {self.center_bias_speed:g} (expected a speed >= 0 in m/s)"
+            )
         if self.faces not in SOLID_NAMES:
-            raise ContactbenchError(f"scene {self.name!r}: faces is {self.faces} (expected one of {sorted(SOLID_NAMES)})")
+            raise ContactbenchError(
+                f"scene {self.name!r}: faces is {self.faces} (expected one of {sorted(SOLID_NAMES)})"
+            )
         if self.bodies < 1:
             raise ContactbenchError(f"scene {self.name!r}: bodies is {self.bodies} (expected at least 1)")
         if self.spawn_attempts < 1:
-            raise ContactbenchError(f"scene {self.name!r}: spawn_attempts is {self.spawn_attempts} (expected at least 1)")
-        if np.any(np.greater(self.position_low, self.position_high)) or np.any(np.greater(self.velocity_low, self.velocity_high)):
+            raise ContactbenchError(
+                f"scene {self.name!r}: spawn_attempts is {self.spawn_attempts} (expected at least 1)"
+            )
+        if np.any(np.greater(self.position_low, self.position_high)) or np.any(
+            np.greater(self.velocity_low, self.velocity_high)
+        ):
             raise ValueError(f"scene {self.name!r}: a lower bound of the initial-state box exceeds its upper bound")
 
 

@@ -1,4 +1,5 @@
 """The benchmark's convex solids (4 to 26 faces) as closed, outward-wound, centred, 10.48 cm wide meshes."""
+
 from __future__ import annotations
 
 import itertools

@@ -1,4 +1,5 @@
 """MuJoCo with fixed contact parameters: its own defaults (untuned) or a named published preset."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,7 +29,9 @@ def preset_parameters(preset: str, n_bodies: int) -> ContactParameters:
 class MujocoContactModel(ContactModel):
     """Rolls MuJoCo out from the context with the given contact parameters (nothing is fitted)."""
 
-    def __init__(self, name: str, preset: str | None = None, parameters: ContactParameters | None = None, substeps: int = 1):
+    def __init__(
+        self, name: str, preset: str | None = None, parameters: ContactParameters | None = None, substeps: int = 1
+    ):
         if (preset is None) == (parameters is None):
             raise ValueError("give exactly one of preset or parameters")
         self.name = name

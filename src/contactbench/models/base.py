@@ -1,4 +1,5 @@
 """The one interface every contact model implements: fit on train/val, roll out from context frames."""
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod

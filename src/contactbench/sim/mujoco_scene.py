@@ -25,6 +25,7 @@ condim and solimp as for geom contacts. The floor geom carries the same values s
 though only the pairs act. Body-body contacts stay dynamic: MuJoCo takes the max of the two bodies' friction and its
 default solref/solimp (one contact point per convex pair: MuJoCo's `multiccd` stays off, as in its defaults).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -59,8 +60,15 @@ class SceneEffects:
 
     def __post_init__(self):
         freeze_numbers(self, vectors=("wind", "com_offset", "inertia_scale", "floor_tilt"))
-        if not (self.fluid_density >= 0 and self.friction_anisotropy > 0 and min(self.inertia_scale) > 0 and self.gravity_scale > 0):
-            raise ContactbenchError(f"fluid density must be >= 0, friction anisotropy, inertia and gravity scales > 0, got {self}")
+        if not (
+            self.fluid_density >= 0
+            and self.friction_anisotropy > 0
+            and min(self.inertia_scale) > 0
+            and self.gravity_scale > 0
+        ):
+            raise ContactbenchError(
+                f"fluid density must be >= 0, friction anisotropy, inertia and gravity scales > 0, got {self}"
+            )
 
 
 NO_EFFECTS = SceneEffects()
@@ -89,7 +97,7 @@ class ContactParameters:
             raise ContactbenchError(f"floor stiffness must be positive and damping non-negative, got {self}")
 
     @classmethod
-    def mujoco_default(cls, n_bodies: int) -> "ContactParameters":
+    def mujoco_default(cls, n_bodies: int) -> ContactParameters:
         """MuJoCo's own defaults (friction 1, solref 0.02 1, default solimp, condim 3): the untuned simulation.
 
         MuJoCo's default geom friction is "1 0.005 0.0001"; with condim 3 only the first entry acts.
@@ -116,7 +124,9 @@ def _numbers(values) -> str:
 def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1) -> str:
     """The MJCF text of the dataset's scene with the given contact parameters (see the module docstring)."""
     if len(params.object_friction) != dataset.n_bodies:
-        raise ContactbenchError(f"{len(params.object_friction)} object frictions for a scene of {dataset.n_bodies} bodies")
+        raise ContactbenchError(
+            f"{len(params.object_friction)} object frictions for a scene of {dataset.n_bodies} bodies"
+        )
     if substeps < 1:
         raise ContactbenchError(f"substeps must be a positive integer, got {substeps}")
     mesh_names = {path: f"mesh{i}" for i, path in enumerate(dict.fromkeys(b.mesh for b in dataset.bodies))}
@@ -142,7 +152,10 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
         )
         sliding = max(params.object_friction[k], params.floor_friction)
         # A floor contact's first tangent is the floor's y axis, its second the x axis (MuJoCo's plane frame).
-        along_y, along_x = sliding / np.sqrt(effects.friction_anisotropy), sliding * np.sqrt(effects.friction_anisotropy)
+        along_y, along_x = (
+            sliding / np.sqrt(effects.friction_anisotropy),
+            sliding * np.sqrt(effects.friction_anisotropy),
+        )
         pairs.append(
             f'<pair geom1="floor" geom2="geom{k}" condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
             f'solimp="{_numbers(MUJOCO_DEFAULT_SOLIMP)}" '
@@ -154,7 +167,9 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
             f"<mujoco model={quoteattr(dataset.name)}>",
             '<compiler angle="radian" inertiafromgeom="false"/>',
             f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(np.asarray(dataset.gravity) * effects.gravity_scale)}" integrator="Euler"{fluid}/>',
-            "<asset>", *assets, "</asset>",
+            "<asset>",
+            *assets,
+            "</asset>",
             "<worldbody>",
             f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z + effects.floor_offset!r}" '
             f'quat="{_numbers(rotations.tilt(*effects.floor_tilt))}" contype="0" conaffinity="0" '
@@ -162,7 +177,9 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
             f'friction="{_numbers((params.floor_friction,) + spin_roll)}"/>',
             *bodies,
             "</worldbody>",
-            "<contact>", *pairs, "</contact>",
+            "<contact>",
+            *pairs,
+            "</contact>",
             "</mujoco>",
         ]
     )

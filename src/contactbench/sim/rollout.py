@@ -4,14 +4,15 @@ State vectors are MuJoCo's `mjSTATE_FULLPHYSICS` layout, nstate = mj_stateSize(m
 [time, qpos (7 per body: x y z qw qx qy qz), qvel (6 per body: world linear, body angular)]; the scenes have no
 actuators or plugins, so act and plugin state are empty (checked).
 """
+
 from __future__ import annotations
 
 import logging
 import os
 from collections import Counter, OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Sequence
 
 import mujoco
 import mujoco.rollout
@@ -68,7 +69,9 @@ class SimulationResult:
 
     poses: np.ndarray  # [B, N, T, K, 7] recordings poses; NaN from the frame where MuJoCo diverged and reset
     qvel: np.ndarray  # [B, N, T, K, 6] MuJoCo free-joint velocities: world linear (mesh-frame origin), BODY angular
-    unstable_frames: np.ndarray  # [B, N, T] diverged (MuJoCo reset), gained energy (ENERGY_GAIN) or fell through the floor
+    unstable_frames: (
+        np.ndarray
+    )  # [B, N, T] diverged (MuJoCo reset), gained energy (ENERGY_GAIN) or fell through the floor
 
     @property
     def unstable(self) -> np.ndarray:
@@ -97,7 +100,9 @@ class MujocoRollouts:
         self._qpos = slice(qpos_at, qpos_at + reference.nq)
         self._qvel = slice(qvel_at, qvel_at + reference.nv)
         if self.nstate != 1 + reference.nq + reference.nv:
-            raise ValueError(f"scene has {self.nstate - 1 - reference.nq - reference.nv} unexpected state entries (act/plugin)")
+            raise ValueError(
+                f"scene has {self.nstate - 1 - reference.nq - reference.nv} unexpected state entries (act/plugin)"
+            )
         self._data = [mujoco.MjData(reference) for _ in range(self.nthread)]
         self._reference_key = structure_key(reference)
         self._other_data: dict[tuple, list[mujoco.MjData]] = {}
@@ -196,10 +201,14 @@ class MujocoRollouts:
         return SimulationResult(poses, qvel, np.maximum.accumulate(diverged | gained | sunk, axis=-1))
 
     def _allowed_energy(self, poses0: np.ndarray, velocities0: np.ndarray) -> np.ndarray:
-        initial = mechanical_energy(self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64))
+        initial = mechanical_energy(
+            self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64)
+        )
         return ENERGY_GAIN * initial + ENERGY_SLACK * sum(body.mass for body in self.dataset.bodies)
 
-    def rollout_context(self, context: Context, params: ContactParameters | Sequence[ContactParameters]) -> SimulationResult:
+    def rollout_context(
+        self, context: Context, params: ContactParameters | Sequence[ContactParameters]
+    ) -> SimulationResult:
         """The shared protocol: start from the last context frame, return context + predictions [B, N, horizon, ...]."""
         result = self.simulate(
             params, context.poses[:, -1], context.velocities[:, -1], context.horizon - context.n_context

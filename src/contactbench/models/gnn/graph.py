@@ -15,6 +15,7 @@ displacements (simulator.py).
 Collision edges come from a dense [B, n, n] distance test: scenes have at most a few hundred vertices, for which
 this costs little next to the network and needs no neighbour-search package (torch-cluster is not installed).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ class MeshScene:
     faces: np.ndarray  # [F, 3] node indices of every body's triangles, counter-clockwise seen from outside
 
     @classmethod
-    def from_recordings(cls, dataset: Recordings) -> "MeshScene":
+    def from_recordings(cls, dataset: Recordings) -> MeshScene:
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
         body_starts = np.cumsum([0] + [len(mesh.vertices) for mesh in meshes])
         undirected = np.concatenate([mesh.edges + start for mesh, start in zip(meshes, body_starts)])
@@ -102,7 +103,9 @@ def collision_edges(positions: torch.Tensor, node_body: torch.Tensor, radius: fl
     return torch.stack([senders + offsets, receivers + offsets])
 
 
-def build_edges(positions: torch.Tensor, node_body: torch.Tensor, mesh_edges: torch.Tensor, radius: float) -> tuple[torch.Tensor, int]:
+def build_edges(
+    positions: torch.Tensor, node_body: torch.Tensor, mesh_edges: torch.Tensor, radius: float
+) -> tuple[torch.Tensor, int]:
     """Edge index [2, B * E + Ec] of B stacked graphs (mesh edges first, then collision edges) and B * E."""
     batch_size, n_nodes, _ = positions.shape
     mesh = batched_mesh_edges(mesh_edges, n_nodes, batch_size)

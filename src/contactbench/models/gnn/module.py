@@ -11,6 +11,7 @@ trajectories, as `metrics.compute_metrics` averages), the quantity models are se
 Normalisation statistics are computed from the train split when fitting starts and live in buffers, so
 `GNNModule.load_from_checkpoint(path, dataset=recordings, weights_only=True)` restores a usable model.
 """
+
 from __future__ import annotations
 
 import time
@@ -28,7 +29,6 @@ from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimu
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
 from contactbench.recordings import Recordings, Split
 
-
 LR_SCHEDULES = ("constant", "cosine")
 
 
@@ -41,7 +41,9 @@ def evenly_spaced(count: int, chosen: int | None) -> np.ndarray:
 
 def check_history_fits(context_frames: int, velocity_history: int) -> None:
     if context_frames < velocity_history + 1:
-        raise ValueError(f"{velocity_history} velocities need {velocity_history + 1} context frames; the protocol gives {context_frames}")
+        raise ValueError(
+            f"{velocity_history} velocities need {velocity_history + 1} context frames; the protocol gives {context_frames}"
+        )
 
 
 class StepSeededBatches(Sampler):
@@ -50,7 +52,12 @@ class StepSeededBatches(Sampler):
     uninterrupted run draws. `current_step` is read when an epoch's iteration starts."""
 
     def __init__(self, n_windows: int, batch_size: int, seed: int, current_step: Callable[[], int]):
-        self.n_windows, self.batch_size, self.seed, self.current_step = n_windows, min(batch_size, n_windows), seed, current_step
+        self.n_windows, self.batch_size, self.seed, self.current_step = (
+            n_windows,
+            min(batch_size, n_windows),
+            seed,
+            current_step,
+        )
 
     def __len__(self) -> int:
         return -(-self.n_windows // self.batch_size)
@@ -68,7 +75,9 @@ class VertexWindows(Dataset):
     so a batch's vertices are placed in one vectorised call.
     """
 
-    def __init__(self, split: Split, scene: MeshScene, window_frames: int, max_windows: int | None = None, as_poses: bool = False):
+    def __init__(
+        self, split: Split, scene: MeshScene, window_frames: int, max_windows: int | None = None, as_poses: bool = False
+    ):
         fits = np.arange(split.n_frames)[None, :] <= (split.lengths - window_frames)[:, None]
         trajectories, starts = np.nonzero(fits)
         keep = evenly_spaced(len(trajectories), max_windows)
@@ -121,7 +130,9 @@ class GNNDataModule(pl.LightningDataModule):
 
     def _loader(self, windows: VertexWindows, batches: Sampler) -> DataLoader:
         if len(windows) == 0:
-            raise ValueError(f"no trajectory of dataset {self.dataset.name!r} has the {self.window_frames} frames one training window needs")
+            raise ValueError(
+                f"no trajectory of dataset {self.dataset.name!r} has the {self.window_frames} frames one training window needs"
+            )
         return DataLoader(
             windows,
             sampler=batches,
@@ -138,7 +149,9 @@ class GNNDataModule(pl.LightningDataModule):
         return self.trainer.global_step if self.trainer is not None else 0
 
     def val_dataloader(self) -> DataLoader:
-        windows = VertexWindows(self.dataset.split("val"), self.scene, self.window_frames, self.val_windows, as_poses=self.rigid)
+        windows = VertexWindows(
+            self.dataset.split("val"), self.scene, self.window_frames, self.val_windows, as_poses=self.rigid
+        )
         return self._loader(windows, BatchSampler(SequentialSampler(windows), self.val_batch_size, drop_last=False))
 
 
@@ -183,7 +196,9 @@ class GNNModule(pl.LightningModule):
         }
         if rigid:
             contact_distance = contact_distance_fraction * float(np.max(scene.widths))
-            self.simulator = RigidLearnedSimulator(scene, gravity=dataset.gravity, contact_distance=contact_distance, **options)
+            self.simulator = RigidLearnedSimulator(
+                scene, gravity=dataset.gravity, contact_distance=contact_distance, **options
+            )
         else:
             self.simulator = LearnedSimulator(scene, **options)
 
@@ -196,12 +211,16 @@ class GNNModule(pl.LightningModule):
         if self.hparams.lr_schedule == "constant":
             return optimizer
         # cosine decay to 1% of lr over the run's max_steps: large steps early, fine ones while selecting on val
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, self.trainer.max_steps), eta_min=0.01 * self.hparams.lr)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
+            optimizer, T_max=max(1, self.trainer.max_steps), eta_min=0.01 * self.hparams.lr
+        )
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}
 
     def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
         # noise drawn from (seed, step), like the batches: a resumed run trains exactly as an uninterrupted one
-        generator = torch.Generator(device=batch.device).manual_seed(int(np.random.SeedSequence([self.hparams.seed, self.global_step]).generate_state(1)[0]))
+        generator = torch.Generator(device=batch.device).manual_seed(
+            int(np.random.SeedSequence([self.hparams.seed, self.global_step]).generate_state(1)[0])
+        )
         loss = self.simulator.loss(batch, add_noise=True, generator=generator)
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch))
         return loss

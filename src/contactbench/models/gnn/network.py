@@ -6,6 +6,7 @@ latent and the sum of its incoming edges, both as residuals. Decoder: an MLP fro
 (per-vertex normalised acceleration). Every MLP has `hidden_layers` ReLU layers of the latent size; all but the
 decoder end in a LayerNorm, as in the reference implementation.
 """
+
 from __future__ import annotations
 
 import torch
@@ -40,10 +41,14 @@ class InteractionLayer(MessagePassing):
         self.edge_input = nn.Linear(latent_size, latent_size)
         self.sender_input = nn.Linear(latent_size, latent_size, bias=False)
         self.receiver_input = nn.Linear(latent_size, latent_size, bias=False)
-        self.edge_mlp = nn.Sequential(nn.ReLU(), mlp(latent_size, latent_size, latent_size, hidden_layers - 1, layer_norm=True))
+        self.edge_mlp = nn.Sequential(
+            nn.ReLU(), mlp(latent_size, latent_size, latent_size, hidden_layers - 1, layer_norm=True)
+        )
         self.node_mlp = mlp(2 * latent_size, latent_size, latent_size, hidden_layers, layer_norm=True)
 
-    def forward(self, nodes: torch.Tensor, edge_index: torch.Tensor, edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, nodes: torch.Tensor, edge_index: torch.Tensor, edges: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         size = (nodes.shape[0], nodes.shape[0])
         edge_updates = self.edge_updater(
             edge_index, senders=self.sender_input(nodes), receivers=self.receiver_input(nodes), edges=edges, size=size
@@ -74,10 +79,14 @@ class EncodeProcessDecode(nn.Module):
         super().__init__()
         self.node_encoder = mlp(node_input_size, latent_size, latent_size, hidden_layers, layer_norm=True)
         self.edge_encoder = mlp(edge_input_size, latent_size, latent_size, hidden_layers, layer_norm=True)
-        self.processor = nn.ModuleList(InteractionLayer(latent_size, hidden_layers) for _ in range(message_passing_steps))
+        self.processor = nn.ModuleList(
+            InteractionLayer(latent_size, hidden_layers) for _ in range(message_passing_steps)
+        )
         self.decoder = mlp(latent_size, latent_size, output_size, hidden_layers, layer_norm=False)
 
-    def forward(self, node_features: torch.Tensor, edge_index: torch.Tensor, edge_features: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, node_features: torch.Tensor, edge_index: torch.Tensor, edge_features: torch.Tensor
+    ) -> torch.Tensor:
         nodes = self.node_encoder(node_features)
         edges = self.edge_encoder(edge_features)
         for layer in self.processor:

@@ -1,4 +1,5 @@
 """Differentiable w-first unit quaternions in torch (the numpy twins live in contactbench.rotations)."""
+
 from __future__ import annotations
 
 import math

@@ -24,6 +24,7 @@ rigidity holds at every step by construction, as Allen et al. (2022) obtain with
   last-step scale of noise_std / half-width (the same displacement at a corner); the target frame is shifted by the
   last input frame's noise, so the model learns to cancel velocity noise.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -43,7 +44,14 @@ class RigidLearnedSimulator(LearnedSimulator):
     extra_edge_features = 4
 
     def __init__(
-        self, scene: MeshScene, dt: float, floor_z: float, gravity: np.ndarray, radius: float, contact_distance: float, **options
+        self,
+        scene: MeshScene,
+        dt: float,
+        floor_z: float,
+        gravity: np.ndarray,
+        radius: float,
+        contact_distance: float,
+        **options,
     ):
         self.contact_distance = contact_distance
         super().__init__(scene, dt, floor_z, radius, **options)
@@ -54,7 +62,9 @@ class RigidLearnedSimulator(LearnedSimulator):
         offsets = rest - centroids[node_body]
         spread = torch.einsum("ni,nj->nij", offsets, offsets)
         second_moment = torch.zeros(scene.n_bodies, 3, 3, dtype=torch.float64).index_add_(0, node_body, spread)
-        geometric_inertia = torch.diagonal(second_moment, dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3) - second_moment
+        geometric_inertia = (
+            torch.diagonal(second_moment, dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3) - second_moment
+        )
         self.register_buffer("rest_vertices_double", rest, persistent=False)
         self.register_buffer("rest_centroids", centroids, persistent=False)
         self.register_buffer("vertex_counts", counts, persistent=False)
@@ -87,11 +97,15 @@ class RigidLearnedSimulator(LearnedSimulator):
         radius of another body's vertex (NaN poses count as in contact)."""
         vertices = self.vertices(poses)  # [..., n, 3]
         near_floor = ~(vertices[..., 2] - self.floor_z >= self.contact_distance)
-        gap = torch.cdist(vertices.flatten(0, -3), vertices.flatten(0, -3)).reshape(*vertices.shape[:-1], vertices.shape[-2])
+        gap = torch.cdist(vertices.flatten(0, -3), vertices.flatten(0, -3)).reshape(
+            *vertices.shape[:-1], vertices.shape[-2]
+        )
         other = self.node_body[:, None] != self.node_body[None, :]
         near_other = ((gap < self.radius) & other).any(dim=-1)
         gated = (near_floor | near_other).double()
-        in_contact = torch.zeros(*gated.shape[:-1], self.scene.n_bodies, dtype=torch.float64).index_add_(-1, self.node_body, gated)
+        in_contact = torch.zeros(*gated.shape[:-1], self.scene.n_bodies, dtype=torch.float64).index_add_(
+            -1, self.node_body, gated
+        )
         return in_contact == 0
 
     # ------------------------------------------------------------ kinematics
@@ -138,7 +152,9 @@ class RigidLearnedSimulator(LearnedSimulator):
         n_nodes = current.shape[1]
         graphs = receivers // n_nodes
         triangles = current[:, self.faces]  # [B, F, 3 corners, 3]
-        normals = torch.linalg.cross(triangles[:, :, 1] - triangles[:, :, 0], triangles[:, :, 2] - triangles[:, :, 0], dim=-1)
+        normals = torch.linalg.cross(
+            triangles[:, :, 1] - triangles[:, :, 0], triangles[:, :, 2] - triangles[:, :, 0], dim=-1
+        )
         normals = normals / torch.linalg.vector_norm(normals, dim=-1, keepdim=True)
         offsets = (normals * triangles[:, :, 0]).sum(-1)
         points = current.flatten(0, 1)[receivers]
@@ -157,7 +173,9 @@ class RigidLearnedSimulator(LearnedSimulator):
         current_single = current.float()
         edge_index, n_mesh_edges = build_edges(current_single, self.node_body, self.mesh_edges, self.radius)
         output = self.network(
-            self.node_features_double(vertices), edge_index, self.edge_features(current_single, edge_index, n_mesh_edges)
+            self.node_features_double(vertices),
+            edge_index,
+            self.edge_features(current_single, edge_index, n_mesh_edges),
         ).reshape(current.shape)
         near = current[..., 2] - self.floor_z < self.contact_distance
         touched = torch.zeros(current.shape[0] * current.shape[1], dtype=torch.bool, device=current.device)
@@ -167,7 +185,9 @@ class RigidLearnedSimulator(LearnedSimulator):
         linear, angular = self.rigid_fit(contact, current, poses[:, -1])
         return linear + self.free_flight_acceleration, angular
 
-    def rigid_fit(self, vertex_accelerations: torch.Tensor, vertices: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def rigid_fit(
+        self, vertex_accelerations: torch.Tensor, vertices: torch.Tensor, poses: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The rigid accelerations (centre of mass [B, K, 3], angular [B, K, 3]) nearest per-vertex ones, least squares.
 
         vertex_accelerations, vertices [B, n, 3]; poses [B, K, 7] the bodies' current poses (float64). Centripetal
@@ -183,7 +203,9 @@ class RigidLearnedSimulator(LearnedSimulator):
         at_centroid = self.per_body_sum(vertex_accelerations) / self.vertex_counts[:, None]
         return at_centroid + torch.linalg.cross(angular, poses[..., :3] - centroids, dim=-1), angular
 
-    def integrate(self, history: torch.Tensor, linear_acceleration: torch.Tensor, angular_acceleration: torch.Tensor) -> torch.Tensor:
+    def integrate(
+        self, history: torch.Tensor, linear_acceleration: torch.Tensor, angular_acceleration: torch.Tensor
+    ) -> torch.Tensor:
         """The pose frame [B, K, 7] after poses [B, H + 1, K, 7] under the given accelerations (semi-implicit Euler)."""
         velocity, spin = self.velocities(history[:, -2], history[:, -1])
         velocity = velocity + linear_acceleration * self.dt
@@ -198,26 +220,38 @@ class RigidLearnedSimulator(LearnedSimulator):
 
     # ------------------------------------------------------------ training
 
-    def target_accelerations(self, previous: torch.Tensor, current: torch.Tensor, following: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def target_accelerations(
+        self, previous: torch.Tensor, current: torch.Tensor, following: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The accelerations [B, K, 3] that take the step from `current` to `following` (recorded poses)."""
         velocity, spin = self.velocities(previous, current)
         next_velocity, next_spin = self.velocities(current, following)
         return (next_velocity - velocity) / self.dt, (next_spin - spin) / self.dt
 
-    def with_noise(self, inputs: torch.Tensor, following: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def with_noise(
+        self, inputs: torch.Tensor, following: torch.Tensor, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Random-walk noise on input positions and orientations; the target frame moves with the last input's."""
         shift = random_walk_noise(inputs[..., :3], self.noise_std, generator)
-        turn = random_walk_noise(torch.zeros_like(inputs[..., :3]), 1.0, generator) * (self.noise_std / self.half_widths)[:, None]
-        inputs = torch.cat([inputs[..., :3] + shift, quaternions.multiply(quaternions.from_rotation_vector(turn), inputs[..., 3:])], dim=-1)
+        turn = (
+            random_walk_noise(torch.zeros_like(inputs[..., :3]), 1.0, generator)
+            * (self.noise_std / self.half_widths)[:, None]
+        )
+        inputs = torch.cat(
+            [inputs[..., :3] + shift, quaternions.multiply(quaternions.from_rotation_vector(turn), inputs[..., 3:])],
+            dim=-1,
+        )
         following = torch.cat(
-            [following[..., :3] + shift[:, -1], quaternions.multiply(quaternions.from_rotation_vector(turn[:, -1]), following[..., 3:])], dim=-1
+            [
+                following[..., :3] + shift[:, -1],
+                quaternions.multiply(quaternions.from_rotation_vector(turn[:, -1]), following[..., 3:]),
+            ],
+            dim=-1,
         )
         return inputs, following
 
     def loss(self, window: torch.Tensor, add_noise: bool, generator: torch.Generator | None = None) -> torch.Tensor:
-        """MSE of the implied vertex accelerations a + α × r_i, normalised per axis, for pose windows [B, H + 2, K, 7].
-
-        """
+        """MSE of the implied vertex accelerations a + α × r_i, normalised per axis, for pose windows [B, H + 2, K, 7]."""
         window = window.double()
         inputs, following = window[:, :-1], window[:, -1]
         if add_noise and self.noise_std > 0:
@@ -225,7 +259,9 @@ class RigidLearnedSimulator(LearnedSimulator):
         linear, angular = self.accelerations(inputs)
         target_linear, target_angular = self.target_accelerations(inputs[:, -2], inputs[:, -1], following)
         offsets = self.vertices(inputs[:, -1]) - inputs[:, -1, self.node_body, :3]
-        error = (linear - target_linear)[:, self.node_body] + torch.linalg.cross((angular - target_angular)[:, self.node_body], offsets, dim=-1)
+        error = (linear - target_linear)[:, self.node_body] + torch.linalg.cross(
+            (angular - target_angular)[:, self.node_body], offsets, dim=-1
+        )
         return torch.mean(torch.square(error / self.acceleration_std.double())).float()
 
     # ------------------------------------------------------------ rollouts
@@ -256,7 +292,11 @@ class RigidGNNContactModel(ContactModel):
         n_steps = context.horizon - context.n_context
         device = self.simulator.rest_vertices.device
         predicted = [
-            self.simulator.rollout(torch.as_tensor(context.poses[start : start + self.batch_size], device=device), n_steps).cpu().numpy()
+            self.simulator.rollout(
+                torch.as_tensor(context.poses[start : start + self.batch_size], device=device), n_steps
+            )
+            .cpu()
+            .numpy()
             for start in range(0, context.poses.shape[0], self.batch_size)
         ]
         return np.concatenate([context.poses, np.concatenate(predicted)], axis=1)

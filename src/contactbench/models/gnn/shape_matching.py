@@ -6,6 +6,7 @@ A = Σ_i (x_i − x̄)(p_i − p̄)ᵀ; with A = U S Vᵀ it is U diag(1, 1, det
 not a reflection). The mesh frame's origin then sits at x̄ − R p̄. All vertices weigh the same; everything is
 batched over leading axes.
 """
+
 from __future__ import annotations
 
 import numpy as np

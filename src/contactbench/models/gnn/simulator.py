@@ -21,6 +21,7 @@ Design choices (paper §4.3 after Sanchez-Gonzalez et al. 2020 and Allen et al. 
   of the train split only, with the training noise added in quadrature (as the reference implementation does);
   held in buffers, so checkpoints carry them.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -158,7 +159,9 @@ class LearnedSimulator(nn.Module):
         """Normalised per-vertex accelerations [B, n, 3] predicted from positions [B, H + 1, n, 3]."""
         current = positions[:, -1]
         edge_index, n_mesh_edges = build_edges(current, self.node_body, self.mesh_edges, self.radius)
-        output = self.network(self.node_features(positions), edge_index, self.edge_features(current, edge_index, n_mesh_edges))
+        output = self.network(
+            self.node_features(positions), edge_index, self.edge_features(current, edge_index, n_mesh_edges)
+        )
         return output.reshape(current.shape)
 
     def acceleration_targets(self, window: torch.Tensor) -> torch.Tensor:
@@ -200,7 +203,11 @@ def check_same_scene(simulator: LearnedSimulator, dataset: Recordings, context: 
     """Refuse a dataset whose meshes differ from the training scene's, or a context too short for the history."""
     scene = simulator.scene
     given = MeshScene.from_recordings(dataset)
-    if given.n_nodes != scene.n_nodes or not np.array_equal(given.mesh_edges, scene.mesh_edges) or not np.allclose(given.rest_vertices, scene.rest_vertices):
+    if (
+        given.n_nodes != scene.n_nodes
+        or not np.array_equal(given.mesh_edges, scene.mesh_edges)
+        or not np.allclose(given.rest_vertices, scene.rest_vertices)
+    ):
         raise ValueError(f"dataset {dataset.name!r} has other meshes than the scene this GNN was trained on")
     if context.n_context < simulator.velocity_history + 1:
         raise ValueError(f"the GNN needs {simulator.velocity_history + 1} context frames, got {context.n_context}")
@@ -228,7 +235,9 @@ class GNNContactModel(ContactModel):
                     torch.as_tensor(vertices[start : start + self.batch_size], dtype=torch.float32, device=device),
                     n_steps,
                     self.per_step_projection,
-                ).cpu().numpy()
+                )
+                .cpu()
+                .numpy()
                 for start in range(0, len(vertices), self.batch_size)
             ]
         )

@@ -6,6 +6,7 @@ Internally positions and linear velocities are those of the centre of mass (CoM)
 `poses_from_states` converts back to the mesh-frame origin the recordings store. The floor is the plane
 z = floor_z with normal +z. An impulse is a 6-vector [linear (N s), angular about the CoM (N m s)], world frame.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -46,7 +47,9 @@ class Scene:
 def scene_from_recordings(dataset: Recordings) -> Scene:
     """The single body of `dataset` with its mass properties, and the dataset's gravity, dt and floor."""
     if dataset.n_bodies != 1:
-        raise SingleBodyError(f"the hybrid model supports single-body datasets; {dataset.name} has {dataset.n_bodies} bodies")
+        raise SingleBodyError(
+            f"the hybrid model supports single-body datasets; {dataset.name} has {dataset.n_bodies} bodies"
+        )
     mesh = dataset.body_mesh(0)
     com, inertia = dataset.mass_properties(0)
     body = RigidBody(
@@ -68,7 +71,7 @@ class State:
     linear: np.ndarray  # [..., 3] CoM velocity
     angular: np.ndarray  # [..., 3] angular velocity
 
-    def __getitem__(self, index) -> "State":
+    def __getitem__(self, index) -> State:
         return State(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
 
@@ -106,7 +109,9 @@ def unconstrained_velocities(state: State, scene: Scene) -> tuple[np.ndarray, np
     """Velocities after one step of gravity and the (explicit) gyroscopic term, before any contact impulse."""
     inertia = world_inertia(state.orientation, scene.body)
     momentum = np.einsum("...ij,...j->...i", inertia, state.angular)
-    gyroscopic = np.einsum("...ij,...j->...i", world_inverse_inertia(state.orientation, scene.body), np.cross(state.angular, momentum))
+    gyroscopic = np.einsum(
+        "...ij,...j->...i", world_inverse_inertia(state.orientation, scene.body), np.cross(state.angular, momentum)
+    )
     return state.linear + scene.dt * scene.gravity, state.angular - scene.dt * gyroscopic
 
 

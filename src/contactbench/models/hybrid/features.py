@@ -13,6 +13,7 @@ The features of a state, all unchanged by a rotation of the whole scene about th
 
 The regressor predicts the friction wrench in the body frame: force (N) then torque about the CoM (N m).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -44,9 +45,13 @@ def body_features(state: State, scene: Scene) -> np.ndarray:
 def wrench_to_body(orientation: np.ndarray, wrench: np.ndarray) -> np.ndarray:
     """World-frame wrenches [..., 6] expressed in the body frame."""
     to_body = rotations.conjugate(orientation)
-    return np.concatenate([rotations.rotate(to_body, wrench[..., :3]), rotations.rotate(to_body, wrench[..., 3:])], axis=-1)
+    return np.concatenate(
+        [rotations.rotate(to_body, wrench[..., :3]), rotations.rotate(to_body, wrench[..., 3:])], axis=-1
+    )
 
 
 def wrench_to_world(orientation: np.ndarray, wrench: np.ndarray) -> np.ndarray:
     """Body-frame wrenches [..., 6] expressed in the world frame."""
-    return np.concatenate([rotations.rotate(orientation, wrench[..., :3]), rotations.rotate(orientation, wrench[..., 3:])], axis=-1)
+    return np.concatenate(
+        [rotations.rotate(orientation, wrench[..., :3]), rotations.rotate(orientation, wrench[..., 3:])], axis=-1
+    )

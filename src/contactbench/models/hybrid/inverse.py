@@ -24,6 +24,7 @@ then the frictionless LCP) gives the transition back wherever the data's contact
 Candidates are the vertices that `lcp.contact_candidates` names under gravity alone, as the forward step does; a
 transition with no candidate or no upward impulse gets no normal impulse and all its impulse counts as friction.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,19 +36,28 @@ from contactbench.models.hybrid.dynamics import Scene, State
 from contactbench.models.hybrid.lcp import ContactSettings
 from contactbench.recordings import Recordings, Split
 
-BULLET_CONTACT_EXTRAS = ("contact_normal_force", "contact_friction_force", "contact_normal_torque", "contact_friction_torque")
+BULLET_CONTACT_EXTRAS = (
+    "contact_normal_force",
+    "contact_friction_force",
+    "contact_normal_torque",
+    "contact_friction_torque",
+)
 
 
 def _torque_plane(orientation: np.ndarray, body: dynamics.RigidBody) -> np.ndarray:
     """P [..., 2, 3] with |P e|^2 = min over tau of (e - tau n)^T I^-1 (e - tau n): the metric without the torsion axis."""
     inverse_inertia = dynamics.world_inverse_inertia(orientation, body)
     along_normal = inverse_inertia[..., :, 2]
-    reduced = inverse_inertia - along_normal[..., :, None] * along_normal[..., None, :] / along_normal[..., 2, None, None]
+    reduced = (
+        inverse_inertia - along_normal[..., :, None] * along_normal[..., None, :] / along_normal[..., 2, None, None]
+    )
     eigenvalues, eigenvectors = np.linalg.eigh(reduced)  # ascending; the first is the eliminated torsion direction (0)
     return np.sqrt(np.maximum(eigenvalues[..., 1:], 0.0))[..., :, None] * np.swapaxes(eigenvectors[..., :, 1:], -1, -2)
 
 
-def _closest_convex_combination(points: np.ndarray, target: np.ndarray, allowed: np.ndarray, chunk: int = 4096) -> np.ndarray:
+def _closest_convex_combination(
+    points: np.ndarray, target: np.ndarray, allowed: np.ndarray, chunk: int = 4096
+) -> np.ndarray:
     """Weights [B, V] on the simplex of the allowed points [B, V, 2] whose combination is nearest to target [B, 2].
 
     Exact: the nearest point of a convex polygon is inside a triangle of its points, or on a segment between two,
@@ -91,7 +101,9 @@ def _closest_convex_combination(points: np.ndarray, target: np.ndarray, allowed:
         )
         reached = np.einsum("boc,boci->boi", coefficients, corner)
         residual = np.sum((target[block, None, :] - reached) ** 2, axis=-1)
-        feasible = np.all(usable[:, options], axis=-1) & np.where(is_triangle, proper & np.all(coefficients >= 0.0, axis=-1), True)
+        feasible = np.all(usable[:, options], axis=-1) & np.where(
+            is_triangle, proper & np.all(coefficients >= 0.0, axis=-1), True
+        )
         best = np.argmin(np.where(feasible, residual, np.inf), axis=-1)
         chosen = np.take_along_axis(coefficients, best[:, None, None], axis=1)[:, 0]  # [b, 3]
         packed_weights = np.zeros((len(slots), width))
@@ -102,7 +114,9 @@ def _closest_convex_combination(points: np.ndarray, target: np.ndarray, allowed:
     return weights
 
 
-def decompose_impulse(state: State, impulse: np.ndarray, scene: Scene, settings: ContactSettings) -> tuple[np.ndarray, np.ndarray]:
+def decompose_impulse(
+    state: State, impulse: np.ndarray, scene: Scene, settings: ContactSettings
+) -> tuple[np.ndarray, np.ndarray]:
     """Normal impulses [B, V] at the vertices and the friction impulse [B, 6] (world frame) of body impulses [B, 6]."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
     candidates = lcp.contact_candidates(state, scene, *dynamics.unconstrained_velocities(state, scene), settings)
@@ -151,13 +165,17 @@ def _agreement(recovered: np.ndarray, reference: np.ndarray) -> dict[str, float]
     both = np.stack([recovered.ravel(), reference.ravel()])
     spread = both.std(axis=1)
     return {
-        "relative_error": float(np.linalg.norm(recovered - reference) / reference_norm) if reference_norm > 0 else float("nan"),
+        "relative_error": float(np.linalg.norm(recovered - reference) / reference_norm)
+        if reference_norm > 0
+        else float("nan"),
         "correlation": float(np.corrcoef(both)[0, 1]) if np.all(spread > 0) else float("nan"),
         "reference_rms": float(np.sqrt(np.mean(reference**2))),
     }
 
 
-def compare_with_bullet_contacts(dataset: Recordings, split: str = "train", settings: ContactSettings = ContactSettings()) -> dict[str, dict[str, float]]:
+def compare_with_bullet_contacts(
+    dataset: Recordings, split: str = "train", settings: ContactSettings = ContactSettings()
+) -> dict[str, dict[str, float]]:
     """How well inverse dynamics recovers a simulator's recorded contact forces on a split of `dataset`.
 
     The split must carry the extras contact_normal_force, contact_friction_force, contact_normal_torque and
@@ -171,9 +189,13 @@ def compare_with_bullet_contacts(dataset: Recordings, split: str = "train", sett
     data = dataset.split(split)
     missing = [name for name in BULLET_CONTACT_EXTRAS if name not in data.extras]
     if missing:
-        raise KeyError(f"{dataset.name}/{split}: no recorded contact forces {missing} (generate with record_contacts=true)")
+        raise KeyError(
+            f"{dataset.name}/{split}: no recorded contact forces {missing} (generate with record_contacts=true)"
+        )
     transitions = transitions_from_split(data, scene, settings)
-    recorded = {name: data.extras[name][transitions.trajectory, transitions.frame + 1, 0] for name in BULLET_CONTACT_EXTRAS}
+    recorded = {
+        name: data.extras[name][transitions.trajectory, transitions.frame + 1, 0] for name in BULLET_CONTACT_EXTRAS
+    }
     normal = transitions.normal_wrench / scene.dt
     friction = transitions.friction / scene.dt
     recovered = {
@@ -182,7 +204,13 @@ def compare_with_bullet_contacts(dataset: Recordings, split: str = "train", sett
         "contact_normal_torque": normal[:, 3:],
         "contact_friction_torque": friction[:, 3:],
     }
-    report = {name.removeprefix("contact_"): _agreement(recovered[name], recorded[name]) for name in BULLET_CONTACT_EXTRAS}
-    report["contact_force"] = _agreement(transitions.impulse[:, :3] / scene.dt, recorded["contact_normal_force"] + recorded["contact_friction_force"])
-    report["contact_torque"] = _agreement(transitions.impulse[:, 3:] / scene.dt, recorded["contact_normal_torque"] + recorded["contact_friction_torque"])
+    report = {
+        name.removeprefix("contact_"): _agreement(recovered[name], recorded[name]) for name in BULLET_CONTACT_EXTRAS
+    }
+    report["contact_force"] = _agreement(
+        transitions.impulse[:, :3] / scene.dt, recorded["contact_normal_force"] + recorded["contact_friction_force"]
+    )
+    report["contact_torque"] = _agreement(
+        transitions.impulse[:, 3:] / scene.dt, recorded["contact_normal_torque"] + recorded["contact_friction_torque"]
+    )
     return report

@@ -14,9 +14,10 @@ by impacts, which the data (PyBullet, whose contacts penetrate and push out over
 from our one-step LCP, and on frictioncubes (mu = 0.5) the rollout error was lowest after a few epochs and grew while
 val/loss kept falling (0.46 -> 1.1 cube widths over 40 epochs).
 """
+
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytorch_lightning as pl
@@ -40,7 +41,9 @@ TARGET_STD_FLOOR = 1e-6
 
 def _check_context_frames(context_frames: int) -> None:
     if context_frames < 2:
-        raise ValueError(f"the hybrid model's state needs two frames (a pose and a velocity); got context_frames={context_frames}")
+        raise ValueError(
+            f"the hybrid model's state needs two frames (a pose and a velocity); got context_frames={context_frames}"
+        )
 
 
 def training_arrays(split: Split, scene: Scene, settings: ContactSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +58,14 @@ def training_arrays(split: Split, scene: Scene, settings: ContactSettings) -> tu
 class HybridDataModule(pl.LightningDataModule):
     """Transitions of the train and val splits (never test) as (features, friction wrench) pairs."""
 
-    def __init__(self, dataset: Recordings, context_frames: int = 6, batch_size: int = 512, contact_margin: float = 0.05, num_workers: int = 0):
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int = 6,
+        batch_size: int = 512,
+        contact_margin: float = 0.05,
+        num_workers: int = 0,
+    ):
         super().__init__()
         self.scene = dynamics.scene_from_recordings(dataset)
         _check_context_frames(context_frames)
@@ -71,8 +81,13 @@ class HybridDataModule(pl.LightningDataModule):
                 continue
             inputs, targets = training_arrays(self.dataset.split(name), self.scene, self.settings)
             if len(inputs) == 0:
-                raise ValueError(f"{self.dataset.name}/{name}: no transition comes near the floor; the hybrid model has no friction to learn")
-            self.arrays[name] = (torch.as_tensor(inputs, dtype=torch.float32), torch.as_tensor(targets, dtype=torch.float32))
+                raise ValueError(
+                    f"{self.dataset.name}/{name}: no transition comes near the floor; the hybrid model has no friction to learn"
+                )
+            self.arrays[name] = (
+                torch.as_tensor(inputs, dtype=torch.float32),
+                torch.as_tensor(targets, dtype=torch.float32),
+            )
 
     @property
     def statistics(self) -> dict[str, torch.Tensor]:
@@ -88,7 +103,9 @@ class HybridDataModule(pl.LightningDataModule):
     def _loader(self, name: str, sampler) -> DataLoader:
         # Whole batches are indexed at once (batch_size=None): per-sample indexing and collation cost ten times the step.
         batches = BatchSampler(sampler, batch_size=self.batch_size, drop_last=False)
-        return DataLoader(TensorDataset(*self.arrays[name]), sampler=batches, batch_size=None, num_workers=self.num_workers)
+        return DataLoader(
+            TensorDataset(*self.arrays[name]), sampler=batches, batch_size=None, num_workers=self.num_workers
+        )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", RandomSampler(range(len(self.arrays["train"][0]))))
@@ -115,7 +132,9 @@ class HybridModule(pl.LightningModule):
         _check_context_frames(context_frames)
         hidden = tuple(int(width) for width in hidden)  # plain ints: a checkpoint must open with weights_only=True
         self.save_hyperparameters(ignore=["dataset"])
-        self.settings = ContactSettings(contact_margin=contact_margin, stabilisation=stabilisation, restitution=restitution)
+        self.settings = ContactSettings(
+            contact_margin=contact_margin, stabilisation=stabilisation, restitution=restitution
+        )
         widths = (features.feature_count(scene.body), *hidden)
         layers: list[nn.Module] = []
         for width_in, width_out in zip(widths[:-1], widths[1:]):
@@ -162,7 +181,14 @@ class HybridModule(pl.LightningModule):
         if self.trainer.sanity_checking:
             return
         dataset = self.selection_dataset
-        score = score_model(self.to_contact_model(), dataset, "val", self.hparams.context_frames, dataset_name=dataset.name, variant="selection")
+        score = score_model(
+            self.to_contact_model(),
+            dataset,
+            "val",
+            self.hparams.context_frames,
+            dataset_name=dataset.name,
+            variant="selection",
+        )
         self.log("val/pos_err", score.metrics.summary["pos_err"], prog_bar=True)
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
@@ -175,7 +201,7 @@ class HybridModule(pl.LightningModule):
             tensor = torch.as_tensor(inputs, dtype=torch.float32, device=self.device)
             return self(tensor).cpu().numpy().astype(np.float64)
 
-    def to_contact_model(self) -> "HybridContactModel":
+    def to_contact_model(self) -> HybridContactModel:
         return HybridContactModel(self.predict_friction, self.settings)
 
 
@@ -195,7 +221,9 @@ class HybridContactModel(ContactModel):
         if touching.any():
             near = state[touching]
             wrench = self.predict_friction(features.body_features(near, scene))
-            friction[touching] = lcp.dissipative_friction(near, scene, features.wrench_to_world(near.orientation, wrench) * scene.dt)
+            friction[touching] = lcp.dissipative_friction(
+                near, scene, features.wrench_to_world(near.orientation, wrench) * scene.dt
+            )
         return lcp.frictionless_step(state, scene, friction, self.settings)[0]
 
     def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:

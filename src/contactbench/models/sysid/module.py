@@ -1,4 +1,5 @@
 """SysID as a non-gradient Lightning run: trainer.fit ticks, the NevergradSearch callback asks, rolls out and tells."""
+
 from __future__ import annotations
 
 import logging
@@ -83,7 +84,10 @@ class SysIDModule(pl.LightningModule):
         return MujocoContactModel(name="sysid", parameters=parameters, substeps=self.hparams.substeps)
 
     def fitted_summary(self) -> dict:
-        return {"parameters": self.space.describe(self.space.from_vector(self.selected.cpu().numpy())), "val_loss": float(self.selected_val_loss)}
+        return {
+            "parameters": self.space.describe(self.space.from_vector(self.selected.cpu().numpy())),
+            "val_loss": float(self.selected_val_loss),
+        }
 
 
 def stop_recast_threads() -> None:
@@ -119,12 +123,20 @@ class NevergradSearch(pl.Callback):
     def on_fit_start(self, trainer, module: SysIDModule) -> None:
         h = module.hparams
         rollouts = MujocoRollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
-        penalties = {"unstable_penalty": h.unstable_penalty, "timeout_s": h.timeout_s, "position_exponent": h.position_exponent}
+        penalties = {
+            "unstable_penalty": h.unstable_penalty,
+            "timeout_s": h.timeout_s,
+            "position_exponent": h.position_exponent,
+        }
         self.train_objective = ConfigurationObjective(module.dataset, "train", h.context_frames, rollouts, **penalties)
         self.val_objective = ConfigurationObjective(module.dataset, "val", h.context_frames, rollouts, **penalties)
         log.info(
             "SysID search: restart %d/%d, generation %d, %d evaluations done so far (%d per restart)",
-            min(self.restart + 1, h.restarts), h.restarts, self.generation, self.evaluations, h.evaluations,
+            min(self.restart + 1, h.restarts),
+            h.restarts,
+            self.generation,
+            self.evaluations,
+            h.evaluations,
         )
 
     def on_fit_end(self, trainer, module) -> None:
@@ -153,7 +165,12 @@ class NevergradSearch(pl.Callback):
         self.evaluations += len(candidates)
         self.unstable += int(result.unstable.sum())
         module.log_dict(
-            {"train/loss": float(result.losses.min()), "train/evaluations": float(self.evaluations), "train/unstable_candidates": float(self.unstable), "train/restart": float(self.restart)},
+            {
+                "train/loss": float(result.losses.min()),
+                "train/evaluations": float(self.evaluations),
+                "train/unstable_candidates": float(self.unstable),
+                "train/restart": float(self.restart),
+            },
             on_step=True,
         )
         if self.generation >= module.generations_per_restart:
@@ -175,7 +192,9 @@ class NevergradSearch(pl.Callback):
     def _new_optimizer(self, module: SysIDModule):
         h = module.hparams
         space = module.space.parametrization(seed=h.seed * 1000 + self.restart)
-        return ng.optimizers.registry[h.optimizer](parametrization=space, budget=h.evaluations, num_workers=h.num_workers)
+        return ng.optimizers.registry[h.optimizer](
+            parametrization=space, budget=h.evaluations, num_workers=h.num_workers
+        )
 
     @staticmethod
     def _generation_size(module: SysIDModule, generation: int) -> int:
@@ -219,8 +238,17 @@ class NevergradSearch(pl.Callback):
         val_loss = float(self.val_objective([recommendation], val_indices).losses[0])
         vector = module.space.to_vector(recommendation)
         self.results.append({"vector": vector.tolist(), "val_loss": val_loss})
-        module.log_dict({"val/loss": val_loss, **{f"params/{k}": v for k, v in module.space.describe(recommendation).items()}}, on_step=True)
-        log.info("SysID restart %d/%d: val loss %.5f with %s", self.restart + 1, h.restarts, val_loss, module.space.describe(recommendation))
+        module.log_dict(
+            {"val/loss": val_loss, **{f"params/{k}": v for k, v in module.space.describe(recommendation).items()}},
+            on_step=True,
+        )
+        log.info(
+            "SysID restart %d/%d: val loss %.5f with %s",
+            self.restart + 1,
+            h.restarts,
+            val_loss,
+            module.space.describe(recommendation),
+        )
         stop_recast_threads()
         self.optimizer = None
         self.asked, self.losses = [], []
@@ -262,7 +290,9 @@ class NevergradSearch(pl.Callback):
         self.generation = int(state["generation"])
         self.evaluations = int(state["evaluations"])
         self.unstable = int(state["unstable"])
-        self.results = [{"vector": [float(x) for x in r["vector"]], "val_loss": float(r["val_loss"])} for r in state["results"]]
+        self.results = [
+            {"vector": [float(x) for x in r["vector"]], "val_loss": float(r["val_loss"])} for r in state["results"]
+        ]
         self.asked = list(state["asked"].numpy().copy())
         self.losses = [float(x) for x in state["losses"].tolist()]
 
@@ -278,11 +308,15 @@ def check_search_state(state: object, where: str) -> None:
         return ContactbenchError(f"{where}: field '{field}' {problem} (expected {expected})")
 
     if not isinstance(state, dict):
-        raise ContactbenchError(f"{where}: is a {type(state).__name__} (expected a dict of counters, results and history)")
+        raise ContactbenchError(
+            f"{where}: is a {type(state).__name__} (expected a dict of counters, results and history)"
+        )
     if "optimizer" in state:
         raise fail(
-            "optimizer", "holds serialized optimiser bytes (an older contactbench or a crafted file); loading them would "
-            "mean unpickling", "the numbers-only search state; resume=false starts over",
+            "optimizer",
+            "holds serialized optimiser bytes (an older contactbench or a crafted file); loading them would "
+            "mean unpickling",
+            "the numbers-only search state; resume=false starts over",
         )
     unknown = sorted(set(state) - set(SEARCH_STATE_FIELDS), key=str)
     if unknown:
@@ -297,7 +331,11 @@ def check_search_state(state: object, where: str) -> None:
     results = state["results"]
     if not isinstance(results, list) or len(results) != state["restart"]:
         size = f" of {len(results)} entries" if isinstance(results, list) else ""
-        raise fail("results", f"is a {type(results).__name__}{size}", f"a list with one entry per finished restart ({state['restart']})")
+        raise fail(
+            "results",
+            f"is a {type(results).__name__}{size}",
+            f"a list with one entry per finished restart ({state['restart']})",
+        )
     for k, entry in enumerate(results):
         if (
             not isinstance(entry, dict)
@@ -311,9 +349,13 @@ def check_search_state(state: object, where: str) -> None:
     if not isinstance(asked, torch.Tensor) or asked.dtype != torch.float64 or asked.ndim != 2:
         raise fail("asked", f"is {_describe(asked)}", "a float64 tensor [evaluations, dimensions]")
     if not isinstance(losses, torch.Tensor) or losses.dtype != torch.float64 or losses.shape != (asked.shape[0],):
-        raise fail("losses", f"is {_describe(losses)}", f"a float64 tensor [{asked.shape[0]}], one loss per asked candidate")
+        raise fail(
+            "losses", f"is {_describe(losses)}", f"a float64 tensor [{asked.shape[0]}], one loss per asked candidate"
+        )
     if not (torch.isfinite(asked).all() and torch.isfinite(losses).all()):
-        raise fail("asked" if not torch.isfinite(asked).all() else "losses", "holds NaN or infinite values", "finite numbers")
+        raise fail(
+            "asked" if not torch.isfinite(asked).all() else "losses", "holds NaN or infinite values", "finite numbers"
+        )
 
 
 def _is_number(value: object) -> bool:

@@ -1,4 +1,5 @@
 """Equation (1) of the paper for many candidate parameter sets at once, on rollouts of the shared protocol."""
+
 from __future__ import annotations
 
 import concurrent.futures
@@ -33,7 +34,17 @@ class ConfigurationObjective:
     scores `unstable_penalty` (finite, so the optimiser carries on and learns to avoid the region).
     """
 
-    def __init__(self, dataset: Recordings, split: str, context_frames: int, rollouts: MujocoRollouts, *, unstable_penalty: float = 1e3, timeout_s: float = 120.0, position_exponent: int = 1):
+    def __init__(
+        self,
+        dataset: Recordings,
+        split: str,
+        context_frames: int,
+        rollouts: MujocoRollouts,
+        *,
+        unstable_penalty: float = 1e3,
+        timeout_s: float = 120.0,
+        position_exponent: int = 1,
+    ):
         recorded = dataset.split(split)
         self.context = make_context(recorded, dataset.dt, context_frames)
         self.truth = recorded.poses
@@ -56,7 +67,11 @@ class ConfigurationObjective:
             result = future.result(timeout=self.timeout_s)
         except concurrent.futures.TimeoutError:
             # The native call cannot be interrupted: give it its own executor and data, count everything as failed.
-            log.warning("rollout of %d candidates did not return within %.0f s: treated as failed", len(candidates), self.timeout_s)
+            log.warning(
+                "rollout of %d candidates did not return within %.0f s: treated as failed",
+                len(candidates),
+                self.timeout_s,
+            )
             self._watchdog = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="sysid-rollout")
             self.rollouts.renew_data()
             return Evaluation(np.full(len(candidates), self.unstable_penalty), np.ones(len(candidates), dtype=bool))
@@ -64,7 +79,9 @@ class ConfigurationObjective:
         scored = np.arange(horizon)[None, :] >= context.n_context
         mask = scored & (np.arange(horizon)[None, :] < context.lengths[:, None])  # [n, T]
         with np.errstate(invalid="ignore", over="ignore"):
-            errors = configuration_error(self.truth[indices, :horizon], result.poses, self.widths, self.position_exponent)  # [B, n, T]
+            errors = configuration_error(
+                self.truth[indices, :horizon], result.poses, self.widths, self.position_exponent
+            )  # [B, n, T]
             per_trajectory = np.where(mask, errors, 0.0).sum(axis=-1) / mask.sum(axis=-1)
             losses = per_trajectory.mean(axis=-1)
         # Frames past a trajectory's end are simulated (the batch shares one horizon) but never scored: a candidate

@@ -1,4 +1,5 @@
 """The SysID search space (paper Table 2c) and its mapping to MuJoCo contact parameters."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,7 +24,11 @@ class SearchSpace:
 
     @property
     def names(self) -> list[str]:
-        return [f"object_friction_{k}" for k in range(self.n_bodies)] + ["floor_friction", "floor_stiffness", "floor_damping"]
+        return [f"object_friction_{k}" for k in range(self.n_bodies)] + [
+            "floor_friction",
+            "floor_stiffness",
+            "floor_damping",
+        ]
 
     def parametrization(self, seed: int) -> ng.p.Dict:
         space = ng.p.Dict(
@@ -50,7 +55,14 @@ class SearchSpace:
     def from_vector(self, vector) -> ContactParameters:
         vector = np.asarray(vector, dtype=float)
         k = self.n_bodies
-        return self.to_parameters({"object_friction": vector[:k], "floor_friction": vector[k], "floor_stiffness": vector[k + 1], "floor_damping": vector[k + 2]})
+        return self.to_parameters(
+            {
+                "object_friction": vector[:k],
+                "floor_friction": vector[k],
+                "floor_stiffness": vector[k + 1],
+                "floor_damping": vector[k + 2],
+            }
+        )
 
     def describe(self, params: ContactParameters) -> dict[str, float]:
         return dict(zip(self.names, map(float, self.to_vector(params))))
