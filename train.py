@@ -1,4 +1,5 @@
-"""Fit a contact model on a dataset's train split, select on val: python train.py model=gnn dataset=multicubes bodies=3."""
+"""Fit a contact model on a dataset's train split, select on val: python train.py model=gnn dataset=multicubes
+bodies=3."""
 
 from pathlib import Path
 

@@ -128,8 +128,10 @@ def main() -> None:
         }
         rows.append(row)
         print(
-            f"{row['name']:42s} -> {named or 'none'} {'OK' if row['correct'] else 'WRONG'}  base {base:.4f} aug {augmented:.4f} "
-            f"null {reference if reference is None else round(reference, 4)} closed {row['excess_closed']}  ({row['seconds']} s)",
+            f"{row['name']:42s} -> {named or 'none'} {'OK' if row['correct'] else 'WRONG'}  base {base:.4f} aug "
+            f"{augmented:.4f} "
+            f"null {reference if reference is None else round(reference, 4)} closed {row['excess_closed']}  "
+            f"({row['seconds']} s)",
             flush=True,
         )
     summary = summarise(rows, time.perf_counter() - started)
@@ -157,7 +159,8 @@ def summarise(rows: list[dict], seconds: float) -> dict:
         "",
         f"- named correctly: {named_rate:.0%} of {len(effect_rows)} effect datasets (goal >= 90%)",
         f"- false alarms: {false_alarms} of {len(null_rows)} null datasets (goal 0)",
-        f"- excess held-out error closed: median {np.median(closed):.0%}, mean {np.mean(closed):.0%} over {len(closed)} (goal >= 50%)"
+        f"- excess held-out error closed: median {np.median(closed):.0%}, mean {np.mean(closed):.0%} over "
+        f"{len(closed)} (goal >= 50%)"
         if closed
         else "- excess closed: n/a",
         "",
@@ -178,7 +181,8 @@ def summarise(rows: list[dict], seconds: float) -> dict:
     for r in rows:
         closed_text = "–" if r["excess_closed"] is None else f"{r['excess_closed']:.0%}"
         lines.append(
-            f"| {r['name']} | {', '.join(r['named']) or 'none'} | {r['base_pos_err']:.4f} | {r['augmented_pos_err']:.4f} | "
+            f"| {r['name']} | {', '.join(r['named']) or 'none'} | {r['base_pos_err']:.4f} | "
+            f"{r['augmented_pos_err']:.4f} | "
             f"{'–' if r['null_base_pos_err'] is None else format(r['null_base_pos_err'], '.4f')} | {closed_text} | "
             f"{_short(r['hidden'])} | {_short(r['fitted'])} | {r['seconds']} |"
         )

@@ -1,4 +1,5 @@
-"""Diagnosis objective throughput: robust short-horizon losses of candidate batches vs bare mujoco.rollout, same work."""
+"""Diagnosis objective throughput: robust short-horizon losses of candidate batches vs bare mujoco.rollout, same
+work."""
 
 from __future__ import annotations
 
@@ -64,7 +65,8 @@ def main() -> None:
 
     steps = args.repeats * args.batch * segments.count * args.segment_frames
     print(
-        f"{segments.count} segments x {args.segment_frames} frames, {args.batch} candidates x {args.repeats} batches ({steps} steps)"
+        f"{segments.count} segments x {args.segment_frames} frames, {args.batch} candidates x {args.repeats} batches "
+        f"({steps} steps)"
     )
     print(
         f"objective (build models + rollout + residuals + robust loss): {steps / objective_seconds:,.0f} steps/s, "

@@ -257,7 +257,8 @@ def main() -> None:
     multicubes = sum(generator_seconds[1] + per_body * (bodies - 1) for bodies in MULTICUBES_BODY_COUNTS)
     estimate = (SINGLE_BODY_VARIANTS * generator_seconds[1] + multicubes) * sum(SPLIT_SIZES.values()) / args.tosses
     print(
-        f"  estimate for all 22 variants of {sum(SPLIT_SIZES.values())} tosses: {estimate:.0f} s ({estimate / 60:.1f} min)"
+        f"  estimate for all 22 variants of {sum(SPLIT_SIZES.values())} tosses: {estimate:.0f} s "
+        f"({estimate / 60:.1f} min)"
     )
 
 

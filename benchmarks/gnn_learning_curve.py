@@ -69,7 +69,8 @@ def main() -> None:
                 }
             )
             print(
-                f"{model:10s} {variant:18s} wall {table[-1]['wall_s']:7.1f} s  val pos_err {val_pos_err:.4f}  curve {points}",
+                f"{model:10s} {variant:18s} wall {table[-1]['wall_s']:7.1f} s  val pos_err {val_pos_err:.4f}  curve "
+                f"{points}",
                 flush=True,
             )
     with open(args.out / "curves.csv", "w", newline="") as handle:

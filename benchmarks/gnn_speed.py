@@ -141,7 +141,8 @@ def main() -> None:
     single = read_recordings(args.dataset, splits=["train", "val"])
     print(
         f"device {args.device}, {torch.get_num_threads()} threads, latent {args.latent_size}, "
-        f"{args.message_passing_steps} message-passing steps, batch {args.batch_size}, {'rigid (gnn)' if args.rigid else 'paper (gnn_paper)'}"
+        f"{args.message_passing_steps} message-passing steps, batch {args.batch_size}, "
+        f"{'rigid (gnn)' if args.rigid else 'paper (gnn_paper)'}"
     )
     for n_bodies in args.bodies:
         dataset = single if n_bodies == 1 else side_by_side(single, n_bodies)

@@ -89,7 +89,8 @@ def main() -> int:
     worst = max(peaks.items(), key=lambda item: item[1]) if peaks else ("-", float("nan"))
     print(f"hostile corpus (tests/test_hostile.py), {elapsed:.0f} s{' - TIMED OUT' if hung else ''}")
     print(
-        f"  cases                {counts['cases']}  (+ {fuzz.group(1) if fuzz else '?'} fuzzed datasets inside one of them)"
+        f"  cases                {counts['cases']}  (+ {fuzz.group(1) if fuzz else '?'} fuzzed datasets inside one "
+        "of them)"
     )
     print(f"  clear errors         {counts['clear errors']}")
     for category in (
@@ -105,7 +106,8 @@ def main() -> int:
     print(f"  skipped              {counts['skipped']}")
     print(f"  positive controls    {controls['passed']} passed, {controls['failed']} failed")
     print(
-        f"  peak memory, worst refused oversized split: {worst[1]:.1f} MB  ({worst[0]}; reader process, fresh interpreter)"
+        f"  peak memory, worst refused oversized split: {worst[1]:.1f} MB  ({worst[0]}; reader process, fresh "
+        "interpreter)"
     )
     print(f"  peak memory, largest process of the whole run (pytest, torch loaded): {children_peak_mb:.0f} MB")
     return (

@@ -64,13 +64,15 @@ def main() -> None:
     predicted_frames = len(context.poses) * (context.horizon - context.n_context)
 
     print(
-        f"dataset {dataset.name}: {len(all_transitions.frame)} train transitions, {n_train} in contact; torch threads {torch.get_num_threads()}"
+        f"dataset {dataset.name}: {len(all_transitions.frame)} train transitions, {n_train} in contact; torch "
+        f"threads {torch.get_num_threads()}"
     )
     print(
         f"inverse dynamics: {len(all_transitions.frame) / inverse_seconds:,.0f} transitions/s ({inverse_seconds:.2f} s)"
     )
     print(
-        f"training (batch {args.batch_size}, no validation): {args.epochs * n_train / train_seconds:,.0f} transitions/s ({train_seconds:.2f} s for {args.epochs} epochs)"
+        f"training (batch {args.batch_size}, no validation): {args.epochs * n_train / train_seconds:,.0f} "
+        f"transitions/s ({train_seconds:.2f} s for {args.epochs} epochs)"
     )
     print(
         f"rollout of {len(context.poses)} trajectories x {context.horizon - context.n_context} frames: "

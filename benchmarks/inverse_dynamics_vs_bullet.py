@@ -1,4 +1,5 @@
-"""Inverse contact dynamics (hybrid model) against PyBullet's own recorded contact forces, on freshly generated tosses."""
+"""Inverse contact dynamics (hybrid model) against PyBullet's own recorded contact forces, on freshly generated
+tosses."""
 
 from __future__ import annotations
 
@@ -33,7 +34,9 @@ def main() -> None:
             report = compare_with_bullet_contacts(read_recordings(path))
             for quantity, numbers in report.items():
                 print(
-                    f"{'frictioncubes mu=' + format(friction, 'g'):<28} {quantity:<16} {numbers['relative_error']:>15.2e} {numbers['correlation']:>12.6f} {numbers['reference_rms']:>13.4f}"
+                    f"{'frictioncubes mu=' + format(friction, 'g'):<28} {quantity:<16} "
+                    f"{numbers['relative_error']:>15.2e} {numbers['correlation']:>12.6f} "
+                    f"{numbers['reference_rms']:>13.4f}"
                 )
 
 

@@ -60,7 +60,8 @@ def main() -> None:
     print(
         f"compute_metrics: {args.trajectories} x {args.frames} frames x {args.bodies} cubes, {frames} scored frames: "
         f"{seconds * 1e3:.1f} ms, {frames / seconds:,.0f} frames/s "
-        f"(pairwise collisions: true {result.summary['pairwise_collisions_true']:.2f}, pred {result.summary['pairwise_collisions']:.2f})"
+        f"(pairwise collisions: true {result.summary['pairwise_collisions_true']:.2f}, pred "
+        f"{result.summary['pairwise_collisions']:.2f})"
     )
 
     widths = np.array([mesh.width for mesh in meshes])
@@ -68,7 +69,8 @@ def main() -> None:
     seconds = best_time(lambda: configuration_error(true, candidates, widths), args.repeats)
     frames = args.candidates * args.trajectories * args.frames
     print(
-        f"configuration_error: {args.candidates} candidates x {args.trajectories} x {args.frames} frames: {seconds * 1e3:.1f} ms, {frames / seconds:,.0f} frames/s"
+        f"configuration_error: {args.candidates} candidates x {args.trajectories} x {args.frames} frames: "
+        f"{seconds * 1e3:.1f} ms, {frames / seconds:,.0f} frames/s"
     )
 
 

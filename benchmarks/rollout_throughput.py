@@ -74,10 +74,12 @@ def measure(name: str, simulator: MujocoRollouts, params, poses0, velocities0, n
     total_steps = len(models) * nstep
     wrapped_rate, bare_rate = total_steps / min(wrapped), total_steps / min(bare)
     print(
-        f"{name}: {len(params)} parameter sets x {len(poses0)} trajectories x {nstep} steps, {simulator.nthread} threads\n"
+        f"{name}: {len(params)} parameter sets x {len(poses0)} trajectories x {nstep} steps, {simulator.nthread} "
+        "threads\n"
         f"  MujocoRollouts.simulate  {wrapped_rate:12,.0f} steps/s  ({min(wrapped):.3f} s)\n"
         f"  mujoco.rollout.rollout   {bare_rate:12,.0f} steps/s  ({min(bare):.3f} s)\n"
-        f"  ratio {wrapped_rate / bare_rate:.2f} (goal >= 0.8); unstable items {int(result.unstable.sum())}/{result.unstable.size}"
+        f"  ratio {wrapped_rate / bare_rate:.2f} (goal >= 0.8); unstable items "
+        f"{int(result.unstable.sum())}/{result.unstable.size}"
     )
 
 

@@ -1,4 +1,5 @@
-"""SysID objective throughput (evaluations/s) against bare mujoco.rollout on the same work, and the paper-budget time."""
+"""SysID objective throughput (evaluations/s) against bare mujoco.rollout on the same work, and the paper-budget
+time."""
 
 from __future__ import annotations
 
@@ -76,15 +77,18 @@ def main() -> None:
     rate = evaluations / search_seconds
     paper_evaluations = 10_000 * 10  # at this batch size
     print(
-        f"scene {dataset.name}: NGOpt -> {type(optimizer.optim).__name__}, {args.generations} generations x {args.num_workers} candidates x {batch} trajectories, {rollouts.nthread} threads"
+        f"scene {dataset.name}: NGOpt -> {type(optimizer.optim).__name__}, {args.generations} generations x "
+        f"{args.num_workers} candidates x {batch} trajectories, {rollouts.nthread} threads"
     )
     print(f"search : {rate:8.1f} evaluations/s  {steps / search_seconds:12.0f} steps/s")
     print(
-        f"bare   : {evaluations / bare_seconds:8.1f} evaluations/s  {steps / bare_seconds:12.0f} steps/s (mujoco.rollout alone)"
+        f"bare   : {evaluations / bare_seconds:8.1f} evaluations/s  {steps / bare_seconds:12.0f} steps/s "
+        "(mujoco.rollout alone)"
     )
     print(f"ratio search/bare = {bare_seconds / search_seconds:.2f}  (goal >= 0.8)")
     print(
-        f"paper budget (10 restarts x 10,000 evaluations) on this machine: about {paper_evaluations / rate / 3600:.1f} h"
+        "paper budget (10 restarts x 10,000 evaluations) on this machine: about "
+        f"{paper_evaluations / rate / 3600:.1f} h"
     )
 
 

@@ -1,4 +1,5 @@
-"""The mesh GNN: graphs, shape matching, features and targets, train-only statistics, training, checkpoints, rollouts."""
+"""The mesh GNN: graphs, shape matching, features and targets, train-only statistics, training, checkpoints,
+rollouts."""
 
 from __future__ import annotations
 

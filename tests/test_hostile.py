@@ -1,4 +1,6 @@
-"""Hostile and careless input: crafted checkpoints, other runs' folders, paths and bytes in datasets. One clear error, nothing changed."""
+"""Hostile and careless input: crafted checkpoints, other runs' folders, paths and bytes in datasets.
+
+One clear error, nothing changed."""
 
 from __future__ import annotations
 
@@ -21,6 +23,9 @@ import numpy as np
 import pytest
 import torch
 from conftest import falling_cubes
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hypothesis_settings
+from hypothesis import strategies as st
 from test_pipeline import compose_config, run_entry_point
 
 from contactbench import runs, settings
@@ -316,7 +321,7 @@ def test_an_escaping_split_path_is_one_clear_error_from_the_command_line(tmp_pat
     assert_refused(result, str(root / "meta.json"), "field 'splits.test'", "inside the dataset folder")
 
 
-# ---------------------------------------------------------------- impossible settings, non-finite results, binary meshes
+# ------------------------------------------------ impossible settings, non-finite results, binary meshes
 
 
 BAD_SETTINGS = {
@@ -624,7 +629,8 @@ def test_stale_staging_folders_are_removed_at_the_next_write_and_only_those(tmp_
 
 
 def test_a_generation_killed_during_its_final_write_is_cleaned_by_the_next(tmp_path):
-    """A real kill: the writer is SIGKILLed while its staging folder exists; the next write of that dataset removes it."""
+    """A real kill: the writer is SIGKILLed while its staging folder exists; the next write of that dataset removes
+    it."""
     script = (
         "import os, signal, sys\n"
         "sys.path.insert(0, sys.argv[2])\n"
@@ -658,7 +664,8 @@ def test_too_short_trajectories_name_the_file_and_write_nothing(tmp_path):
     with pytest.raises(
         RecordingsError,
         match=re.escape(
-            f"{root / 'train.npz'}: field 'lengths': trajectory 0 has 6 frames (2 of 2 have fewer than 7; expected at least 7: context_frames=6"
+            f"{root / 'train.npz'}: field 'lengths': trajectory 0 has 6 frames (2 of 2 have fewer than 7; expected "
+            "at least 7: context_frames=6"
         ),
     ):
         runs.train(cfg, run_dir)
@@ -724,10 +731,6 @@ def test_the_readme_diagnose_example_with_commas_parses():
 
 
 # ---------------------------------------------------------------- property-based fuzzing of the reader
-
-from hypothesis import HealthCheck, given  # noqa: E402
-from hypothesis import settings as hypothesis_settings
-from hypothesis import strategies as st
 
 
 def _valid_files() -> dict[str, bytes]:

@@ -154,7 +154,8 @@ def test_lemke_matches_a_hand_solved_lcp():
 
 
 def test_sliding_cube_decelerates_as_the_hand_result(scene):
-    """Coulomb friction mu m g at the floor: v_n = v_0 - n mu g dt, no rotation, front edge carries (1 + mu h/a)/2 of the weight."""
+    """Coulomb friction mu m g at the floor: v_n = v_0 - n mu g dt, no rotation, front edge carries (1 + mu h/a)/2 of
+    the weight."""
     mu, speed, steps = 0.4, 1.0, 20
     state = make_state([0.0, 0.0, HALF], linear=[speed, 0.0, 0.0])
     force = -mu * MASS * G
@@ -194,7 +195,8 @@ def test_dissipative_friction_stops_a_sliding_cube_without_reversing_it(scene):
 
 
 def test_dissipative_friction_keeps_a_resting_cube_at_rest(scene):
-    """At rest only gravity moves the body (straight down); tangential friction would set it sliding, so none is kept."""
+    """At rest only gravity moves the body (straight down); tangential friction would set it sliding, so none is
+    kept."""
     state = make_state([0.1, 0.0, HALF])
     friction = np.array([[0.02, -0.01, 0.0, 0.003, 0.001, -0.002]])
     np.testing.assert_array_equal(lcp.dissipative_friction(state, scene, friction), np.zeros((1, 6)))

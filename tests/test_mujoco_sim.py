@@ -52,7 +52,7 @@ def scene(
 ) -> Recordings:
     """An in-memory recordings scene with one body per mesh and a one-frame split."""
     bodies = []
-    for k, mesh in enumerate(meshes):
+    for k in range(len(meshes)):
         body = {"name": f"body{k}", "mesh": f"meshes/body{k}.obj", "mass": 0.37 if masses is None else masses[k]}
         if inertia_diagonals is not None and inertia_diagonals[k] is not None:
             body["inertia_diagonal"] = list(inertia_diagonals[k])

@@ -1,4 +1,5 @@
-"""rotations.py (w-first quaternions, hand-written for speed) agrees with scipy.spatial.transform.Rotation (x, y, z, w)."""
+"""rotations.py (w-first quaternions, hand-written for speed) agrees with scipy.spatial.transform.Rotation (x, y, z,
+w)."""
 
 from __future__ import annotations
 

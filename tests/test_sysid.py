@@ -150,7 +150,8 @@ def _search_run(dataset, root, kill_at=None, resume=False):
 
 
 def test_a_killed_search_resumes_bit_identically_from_numbers_only(mujoco_made_cube, tmp_path):
-    """The checkpoint holds no pickled optimiser: the resumed run replays its history and ends exactly as an uninterrupted one."""
+    """The checkpoint holds no pickled optimiser: the resumed run replays its history and ends exactly as an
+    uninterrupted one."""
     dataset, _ = mujoco_made_cube
     whole, whole_search = _search_run(dataset, tmp_path / "whole")
     with pytest.raises(_Killed):

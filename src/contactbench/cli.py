@@ -1,4 +1,5 @@
-"""Entry-point guard: user errors become one clear line and exit status 2; a failed multirun job lets the sweep go on."""
+"""Entry-point guard: user errors become one clear line and exit status 2; a failed multirun job lets the sweep go
+on."""
 
 from __future__ import annotations
 

@@ -84,7 +84,8 @@ def record(cfg: DictConfig, output_dir: Path, task: str) -> None:
 
 
 def check_checkpoint(cfg: DictConfig, output_dir: Path) -> None:
-    """A checkpoint to resume from loads as plain tensors and numbers (never unpickling code), with valid callback states."""
+    """A checkpoint to resume from loads as plain tensors and numbers (never unpickling code), with valid callback
+    states."""
     if cfg.model.get("kind") != "lightning":
         return
     path = Path(output_dir) / "checkpoints" / "last.ckpt"

@@ -1,4 +1,5 @@
-"""The paper's evaluation metrics (§4.1, §5.2): pose errors, floor and inter-body penetration, pairwise collisions, eq. (1)."""
+"""The paper's evaluation metrics (§4.1, §5.2): pose errors, floor and inter-body penetration, pairwise collisions, eq.
+(1)."""
 
 from __future__ import annotations
 

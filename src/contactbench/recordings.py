@@ -193,7 +193,8 @@ def _inside_path(value: str, field: str, where: str) -> None:
     if not value or path.is_absolute() or PureWindowsPath(value).is_absolute() or ".." in path.parts or "\\" in value:
         raise _fail(
             where,
-            f"field '{field}' is {value!r} (expected a relative path inside the dataset folder, '/'-separated, without '..')",
+            f"field '{field}' is {value!r} (expected a relative path inside the dataset folder, '/'-separated, "
+            "without '..')",
         )
 
 
@@ -205,7 +206,8 @@ def validate_meta(meta: object, where: str) -> None:
     if meta.get("version") != VERSION or isinstance(meta.get("version"), bool):
         raise _fail(
             where,
-            f"field 'version' is {meta.get('version')!r} (expected {VERSION}; this reader knows version {VERSION} only)",
+            f"field 'version' is {meta.get('version')!r} (expected {VERSION}; this reader knows version {VERSION} "
+            "only)",
         )
     _require(meta, "name", str, where, "a string")
     dt = _require(meta, "dt", (int, float), where, "seconds between frames, a positive number")
@@ -246,7 +248,8 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
     if poses.ndim != 4 or poses.shape[2] != n_bodies or poses.shape[3] != 7:
         raise _fail(
             where,
-            f"field 'poses' has shape {poses.shape} (expected [N, T, K={n_bodies}, 7] for the {n_bodies} bodies in meta.json)",
+            f"field 'poses' has shape {poses.shape} (expected [N, T, K={n_bodies}, 7] for the {n_bodies} bodies in "
+            "meta.json)",
         )
     n, horizon = poses.shape[:2]
     if n == 0 or horizon == 0:
@@ -268,14 +271,16 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
         t_n, t_t, t_k = np.argwhere(off)[0]
         raise _fail(
             where,
-            f"field 'poses': trajectory {t_n}, frame {t_t}, body {t_k}: quaternion norm {norms[t_n, t_t, t_k]:.6f} (expected a unit quaternion within {QUATERNION_TOLERANCE})",
+            f"field 'poses': trajectory {t_n}, frame {t_t}, body {t_k}: quaternion norm {norms[t_n, t_t, t_k]:.6f} "
+            f"(expected a unit quaternion within {QUATERNION_TOLERANCE})",
         )
     if split.velocities is not None:
         velocities = split.velocities
         if velocities.shape != poses.shape[:3] + (6,):
             raise _fail(
                 where,
-                f"field 'velocities' has shape {velocities.shape} (expected {poses.shape[:3] + (6,)}, like poses with 6 components)",
+                f"field 'velocities' has shape {velocities.shape} (expected {poses.shape[:3] + (6,)}, like poses "
+                "with 6 components)",
             )
         _check_finite(velocities, valid, "velocities", where)
 
@@ -389,12 +394,14 @@ def _npz_members(archive: zipfile.ZipFile, path: Path, where: str) -> dict[str, 
         if info.compress_size > file_size:
             raise _fail(
                 where,
-                f"field '{name}': its zip entry claims {info.compress_size} compressed bytes, more than the file's {file_size} (expected an intact archive)",
+                f"field '{name}': its zip entry claims {info.compress_size} compressed bytes, more than the file's "
+                f"{file_size} (expected an intact archive)",
             )
         if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
             raise _fail(
                 where,
-                f"field '{name}': its stored zip entry claims {info.file_size} bytes but holds {info.compress_size} (expected an intact archive)",
+                f"field '{name}': its stored zip entry claims {info.file_size} bytes but holds {info.compress_size} "
+                "(expected an intact archive)",
             )
         if info.file_size > INFLATION_FREE_BYTES and info.file_size > MAX_INFLATION * max(info.compress_size, 1):
             raise _fail(
@@ -408,7 +415,8 @@ def _npz_members(archive: zipfile.ZipFile, path: Path, where: str) -> dict[str, 
     if declared > limit:
         raise _fail(
             where,
-            f"its arrays declare {declared} bytes, more than this machine's {limit} bytes of memory (expected a split that fits in memory)",
+            f"its arrays declare {declared} bytes, more than this machine's {limit} bytes of memory (expected a "
+            "split that fits in memory)",
         )
     return members
 
@@ -453,8 +461,8 @@ def _member(archive: zipfile.ZipFile, members: Mapping[str, zipfile.ZipInfo], na
         if expected != info.file_size:
             raise _fail(
                 where,
-                f"field '{name}': its .npy header declares shape {shape} {dtype} ({count * dtype.itemsize} bytes of data) "
-                f"but the member holds {info.file_size} bytes in all (expected header and data to agree)",
+                f"field '{name}': its .npy header declares shape {shape} {dtype} ({count * dtype.itemsize} bytes of "
+                f"data) but the member holds {info.file_size} bytes in all (expected header and data to agree)",
             )
         array = np.empty(count, dtype=dtype)
         raw = array.view(np.uint8)
@@ -507,7 +515,8 @@ def require_frames(recordings: Recordings, minimum: int, reason: str) -> None:
             )
             raise RecordingsError(
                 f"{where}: field 'lengths': trajectory {short[0]} has {split.lengths[short[0]]} frames "
-                f"({len(short)} of {split.n_trajectories} have fewer than {minimum}; expected at least {minimum}: {reason})"
+                f"({len(short)} of {split.n_trajectories} have fewer than {minimum}; expected at least {minimum}: "
+                f"{reason})"
             )
 
 

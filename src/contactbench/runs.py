@@ -145,7 +145,8 @@ def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> Contac
     record = Path(train_dir) / "fitted.json"
     if not record.is_file():
         raise FileNotFoundError(
-            f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget first"
+            f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget "
+            "first"
         )
     folders.check_signature(cfg, Path(train_dir), "score the model of")
     checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
@@ -223,7 +224,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
 
 
 def diagnose(cfg: DictConfig, output_dir: Path) -> str:
-    """Diagnose a recordings dataset (never reading meta.generator); writes diagnosis.json and report.md. Returns the verdict."""
+    """Diagnose a recordings dataset (never reading meta.generator); writes diagnosis.json and report.md. Returns the
+    verdict."""
     from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
     from contactbench.diagnosis.report import budget_sentence, summary_sentence, write_diagnosis
 

@@ -48,7 +48,8 @@ def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
 
 
 def centre_accelerations(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
-    """Per trajectory: the summed free-flight accelerations of the centres of mass [N, 3] (m/s^2) and their count [N]."""
+    """Per trajectory: the summed free-flight accelerations of the centres of mass [N, 3] (m/s^2) and their count
+    [N]."""
     free = free_frames(dataset, split)
     poses = np.nan_to_num(split.poses)
     centres = np.stack(
@@ -141,7 +142,7 @@ def sentence(found: dict) -> str:
         return head + ": consistent with meta (val)."
     verdict = "confirmed on test" if found["confirmed"] else "NOT confirmed on test"
     return (
-        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}. Either the true frame "
-        f"interval is {found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths are "
-        f"recorded at {found['length_scale']:.4f} × true, or meta.gravity is wrong."
+        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}. Either the true "
+        f"frame interval is {found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths "
+        f"are recorded at {found['length_scale']:.4f} × true, or meta.gravity is wrong."
     )

@@ -73,7 +73,10 @@ def _verdict_sentence(document: dict) -> str:
             f"Val data point to {names}, but the held-out test does not confirm it ({held_text}): treat it as "
             f"unproven; the mismatch lives in {document['located']['where']}."
         )
-    return f"Missing: {names}; modelling it changed the {held_text}; what remains lives in {document['located_after']['where']}."
+    return (
+        f"Missing: {names}; modelling it changed the {held_text}; what remains lives in "
+        f"{document['located_after']['where']}."
+    )
 
 
 def _markdown(document: dict, figures: list[Path]) -> str:
@@ -85,7 +88,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "",
         budget_sentence(document),
         "",
-        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: {document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).",
+        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: "
+        f"{document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).",
         "",
         "## First, model-free: free flight",
         "",
@@ -99,7 +103,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         f"| base | {held['base']['pos_err']:.4f} | {held['base']['rot_err_rad']:.4f} |",
         f"| augmented | {held['augmented']['pos_err']:.4f} | {held['augmented']['rot_err_rad']:.4f} |",
         "",
-        f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired bootstrap over {held['n_trajectories']} test trajectories).",
+        f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired "
+        f"bootstrap over {held['n_trajectories']} test trajectories).",
         "",
         "## Effects",
         "",
@@ -112,14 +117,16 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "",
         "## Candidates (val)",
         "",
-        "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | dBIC | passes |",
+        "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | dBIC | "
+        "passes |",
         "|---|---|---|---|---|---|---|",
     ]
     for c in document["candidates"]:
         if c.get("val_improvement") is None:
             continue
         lines.append(
-            f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | {c['closes_of_base_loss']:.3f} | "
+            f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | "
+            f"{c['closes_of_base_loss']:.3f} | "
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''} |"
         )
     located = document["located"]
@@ -133,7 +140,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
     for p in PHASES:
         ci = located["phase_shares_ci95"][p]
         lines.append(
-            f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | {located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |"
+            f"| {p} | {located['phase_shares'][p]:.3f} | [{ci[0]:.3f}, {ci[1]:.3f}] | "
+            f"{located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |"
         )
     lines += ["", *[f"![{path.stem}](figures/{path.name})" for path in figures], ""]
     return "\n".join(lines)
@@ -148,7 +156,8 @@ def _free_flight_table(found: dict) -> list[str]:
         if part.get("n_frames"):
             ci = part["along_gravity_ci95"]
             lines.append(
-                f"| {name} | {part['n_trajectories']} | {part['n_frames']} | {', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
+                f"| {name} | {part['n_trajectories']} | {part['n_frames']} | "
+                f"{', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
                 f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] |"
             )
     return lines + [""]

@@ -78,8 +78,8 @@ def write_report(root: Path, renders: bool = True) -> Path:
         "## Figures\n",
         *[f"![{path.stem}](figures/{path.name})\n" for path in figures],
         "## Table 3, recomputed\n",
-        f"'Yes' when a method's mean test position error changes by more than {IMPORTANCE_THRESHOLD:.0%} of its smallest "
-        "value across the dimension's variants; 'N/A' with fewer than two variants.\n",
+        f"'Yes' when a method's mean test position error changes by more than {IMPORTANCE_THRESHOLD:.0%} of its "
+        "smallest value across the dimension's variants; 'N/A' with fewer than two variants.\n",
         importance_markdown(importance),
         "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
         *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
@@ -120,7 +120,8 @@ def _html(markdown: str) -> str:
     if in_table:
         body.append("</table>")
     text = "\n".join(body)
-    return f"<!doctype html>\n<html><head><meta charset='utf-8'><title>contactbench results</title></head><body>\n{text}\n</body></html>\n"
+    head = "<!doctype html>\n<html><head><meta charset='utf-8'><title>contactbench results</title></head><body>"
+    return f"{head}\n{text}\n</body></html>\n"
 
 
 def main() -> None:

@@ -271,7 +271,8 @@ def generate_dataset(
                 "deterministicOverlappingPairs": 1,
                 "body_dynamics": dict(BODY_DYNAMICS_OVERRIDES),
                 "inertia": "localInertiaDiagonal from the mesh, uniform density",
-                "material_combination": "PyBullet multiplies the friction and the restitution of the two bodies in contact",
+                "material_combination": "PyBullet multiplies the friction and the restitution of the two bodies in "
+                "contact",
             },
             "contacts_recorded": record_contacts,
             "effects": concealed.truth(effects),

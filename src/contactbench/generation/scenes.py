@@ -156,7 +156,8 @@ def _spawn_without_overlap(spec: SceneSpec, mesh: Mesh, rng: np.random.Generator
         else:
             raise SpawnError(
                 f"body {body} of {spec.bodies} could not be placed without overlapping the bodies before it "
-                f"in {spec.spawn_attempts} attempts (scene {spec.name!r}, spawn region {spec.position_low}..{spec.position_high})"
+                f"in {spec.spawn_attempts} attempts (scene {spec.name!r}, spawn region "
+                f"{spec.position_low}..{spec.position_high})"
             )
         poses[body, :3], poses[body, 3:] = position, orientation
         boxes_low[body], boxes_high[body] = box_low, box_high

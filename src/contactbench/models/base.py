@@ -37,7 +37,8 @@ def make_context(split: Split, dt: float, context_frames: int) -> Context:
     if split.lengths.min() <= context_frames:
         short = int(np.argmin(split.lengths))
         raise ContactbenchError(
-            f"trajectory {short} has {split.lengths[short]} frames; the protocol needs more than context_frames={context_frames}"
+            f"trajectory {short} has {split.lengths[short]} frames; the protocol needs more than "
+            f"context_frames={context_frames}"
         )
     poses = split.poses[:, :context_frames]
     if split.velocities is not None:
@@ -52,7 +53,7 @@ class ContactModel(ABC):
 
     name: str = "model"
 
-    def fit(self, dataset: Recordings) -> None:  # analytical models have nothing to fit
+    def fit(self, dataset: Recordings) -> None:  # noqa: B027 (optional: analytical models have nothing to fit)
         """Fit on dataset.split('train'); select on dataset.split('val')."""
 
     @abstractmethod

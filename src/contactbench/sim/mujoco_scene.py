@@ -162,11 +162,12 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
             f'friction="{_numbers((along_y, along_x, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
         )
     fluid = f' density="{effects.fluid_density!r}" wind="{_numbers(effects.wind)}"' if effects.fluid_density > 0 else ""
+    gravity = _numbers(np.asarray(dataset.gravity) * effects.gravity_scale)
     return "\n".join(
         [
             f"<mujoco model={quoteattr(dataset.name)}>",
             '<compiler angle="radian" inertiafromgeom="false"/>',
-            f'<option timestep="{dataset.dt / substeps!r}" gravity="{_numbers(np.asarray(dataset.gravity) * effects.gravity_scale)}" integrator="Euler"{fluid}/>',
+            f'<option timestep="{dataset.dt / substeps!r}" gravity="{gravity}" integrator="Euler"{fluid}/>',
             "<asset>",
             *assets,
             "</asset>",
@@ -204,7 +205,8 @@ def unpack_state(qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def body_frame_velocities(poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
-    """World [v, w] [..., K, 6] -> free-joint velocities [..., K, 6]: v stays world-frame, w turns into the body frame."""
+    """World [v, w] [..., K, 6] -> free-joint velocities [..., K, 6]: v stays world-frame, w turns into the body
+    frame."""
     qvel = np.empty(np.broadcast_shapes(poses.shape[:-1], velocities.shape[:-1]) + (6,))
     qvel[..., :3] = velocities[..., :3]
     qvel[..., 3:] = rotations.rotate(rotations.conjugate(poses[..., 3:]), velocities[..., 3:])

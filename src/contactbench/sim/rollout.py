@@ -230,7 +230,8 @@ def structure_key(model: mujoco.MjModel) -> tuple:
 
 
 def mechanical_energy(dataset: Recordings, poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
-    """Kinetic + gravitational energy (J, zero at the floor) of the scene at poses [..., K, 7], velocities [..., K, 6]."""
+    """Kinetic + gravitational energy (J, zero at the floor) of the scene at poses [..., K, 7], velocities [..., K,
+    6]."""
     return body_frame_energy(dataset, poses, body_frame_velocities(poses, velocities))
 
 

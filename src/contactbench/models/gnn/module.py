@@ -42,7 +42,8 @@ def evenly_spaced(count: int, chosen: int | None) -> np.ndarray:
 def check_history_fits(context_frames: int, velocity_history: int) -> None:
     if context_frames < velocity_history + 1:
         raise ValueError(
-            f"{velocity_history} velocities need {velocity_history + 1} context frames; the protocol gives {context_frames}"
+            f"{velocity_history} velocities need {velocity_history + 1} context frames; the protocol gives "
+            f"{context_frames}"
         )
 
 
@@ -131,7 +132,8 @@ class GNNDataModule(pl.LightningDataModule):
     def _loader(self, windows: VertexWindows, batches: Sampler) -> DataLoader:
         if len(windows) == 0:
             raise ValueError(
-                f"no trajectory of dataset {self.dataset.name!r} has the {self.window_frames} frames one training window needs"
+                f"no trajectory of dataset {self.dataset.name!r} has the {self.window_frames} frames one training "
+                "window needs"
             )
         return DataLoader(
             windows,

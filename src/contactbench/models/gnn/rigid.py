@@ -251,7 +251,8 @@ class RigidLearnedSimulator(LearnedSimulator):
         return inputs, following
 
     def loss(self, window: torch.Tensor, add_noise: bool, generator: torch.Generator | None = None) -> torch.Tensor:
-        """MSE of the implied vertex accelerations a + α × r_i, normalised per axis, for pose windows [B, H + 2, K, 7]."""
+        """MSE of the implied vertex accelerations a + α × r_i, normalised per axis, for pose windows [B, H + 2, K,
+        7]."""
         window = window.double()
         inputs, following = window[:, :-1], window[:, -1]
         if add_noise and self.noise_std > 0:

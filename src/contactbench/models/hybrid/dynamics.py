@@ -165,7 +165,8 @@ def normal_wrench(offsets: np.ndarray, normal_impulses: np.ndarray) -> np.ndarra
 
 
 def delassus(orientation: np.ndarray, offsets: np.ndarray, body: RigidBody) -> np.ndarray:
-    """Normal-velocity response [..., V, V] of vertex i to a unit normal impulse at vertex j: 1/m + (r_i x n)^T I^-1 (r_j x n)."""
+    """Normal-velocity response [..., V, V] of vertex i to a unit normal impulse at vertex j: 1/m + (r_i x n)^T I^-1
+    (r_j x n)."""
     arms = normal_torque_arms(offsets)
     inverse_inertia = world_inverse_inertia(orientation, body)
     return 1.0 / body.mass + np.einsum("...vi,...ij,...wj->...vw", arms, inverse_inertia, arms)

@@ -45,7 +45,8 @@ BULLET_CONTACT_EXTRAS = (
 
 
 def _torque_plane(orientation: np.ndarray, body: dynamics.RigidBody) -> np.ndarray:
-    """P [..., 2, 3] with |P e|^2 = min over tau of (e - tau n)^T I^-1 (e - tau n): the metric without the torsion axis."""
+    """P [..., 2, 3] with |P e|^2 = min over tau of (e - tau n)^T I^-1 (e - tau n): the metric without the torsion
+    axis."""
     inverse_inertia = dynamics.world_inverse_inertia(orientation, body)
     along_normal = inverse_inertia[..., :, 2]
     reduced = (
@@ -71,7 +72,7 @@ def _closest_convex_combination(
         return weights
     singles = [(i, i, i) for i in range(width)]
     pairs = [(i, j, j) for i in range(width) for j in range(i + 1, width)]
-    triples = [(i, j, l) for i in range(width) for j in range(i + 1, width) for l in range(j + 1, width)]
+    triples = [(i, j, k) for i in range(width) for j in range(i + 1, width) for k in range(j + 1, width)]
     options = np.array(singles + pairs + triples, dtype=np.int64).reshape(-1, 3)  # [O, 3] vertex slots of each option
     for rows in range(0, batch, chunk):
         block = slice(rows, rows + chunk)

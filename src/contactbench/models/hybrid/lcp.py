@@ -208,7 +208,8 @@ def dissipative_friction(state: State, scene: Scene, friction_impulse: np.ndarra
 def frictionless_step(
     state: State, scene: Scene, friction_impulse: np.ndarray, settings: ContactSettings
 ) -> tuple[State, np.ndarray]:
-    """One step of bodies [B]: gravity and the given friction impulses [B, 6], then the LCP's normal impulses, then integration.
+    """One step of bodies [B]: gravity and the given friction impulses [B, 6], then the LCP's normal impulses, then
+    integration.
 
     Returns the next states and the normal impulses [B, V].
     """

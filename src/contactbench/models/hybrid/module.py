@@ -82,7 +82,8 @@ class HybridDataModule(pl.LightningDataModule):
             inputs, targets = training_arrays(self.dataset.split(name), self.scene, self.settings)
             if len(inputs) == 0:
                 raise ValueError(
-                    f"{self.dataset.name}/{name}: no transition comes near the floor; the hybrid model has no friction to learn"
+                    f"{self.dataset.name}/{name}: no transition comes near the floor; the hybrid model has no "
+                    "friction to learn"
                 )
             self.arrays[name] = (
                 torch.as_tensor(inputs, dtype=torch.float32),
@@ -101,7 +102,8 @@ class HybridDataModule(pl.LightningDataModule):
         }
 
     def _loader(self, name: str, sampler) -> DataLoader:
-        # Whole batches are indexed at once (batch_size=None): per-sample indexing and collation cost ten times the step.
+        # Whole batches are indexed at once (batch_size=None): per-sample indexing and collation cost ten times the
+        # step.
         batches = BatchSampler(sampler, batch_size=self.batch_size, drop_last=False)
         return DataLoader(
             TensorDataset(*self.arrays[name]), sampler=batches, batch_size=None, num_workers=self.num_workers
@@ -206,7 +208,8 @@ class HybridModule(pl.LightningModule):
 
 
 class HybridContactModel(ContactModel):
-    """Rollout: learned friction wrench (made dissipative), then the frictionless LCP for the normal impulses, then integration."""
+    """Rollout: learned friction wrench (made dissipative), then the frictionless LCP for the normal impulses, then
+    integration."""
 
     name = "hybrid"
 

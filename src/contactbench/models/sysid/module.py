@@ -218,8 +218,9 @@ class NevergradSearch(pl.Callback):
                 # Bitwise: anything less and the continuation would silently differ from the uninterrupted run.
                 if data.shape != asked.shape or not np.array_equal(data, asked):
                     raise ContactbenchError(
-                        f"checkpoint search state: the re-created optimiser asks other candidates than the recorded ones "
-                        f"(restart {self.restart}, generation {generation}; another nevergrad version?); resume=false starts over"
+                        "checkpoint search state: the re-created optimiser asks other candidates than the recorded "
+                        f"ones (restart {self.restart}, generation {generation}; another nevergrad version?); "
+                        "resume=false starts over"
                     )
                 self.optimizer.tell(candidate, loss)
 
