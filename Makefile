@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN = $(VENV)/bin
 
-.PHONY: main test benchmarks matrix
+.PHONY: main test lint benchmarks matrix
 
 # The embedded default: one generated variant and the real cube, every model at budget=quick, scored on val and
 # test, then one results table.
@@ -26,6 +26,11 @@ matrix: $(VENV)/.installed
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q
+
+# ruff's lint rules and formatting ([tool.ruff] in pyproject.toml); .ci/run runs it before the tests.
+lint: $(VENV)/.installed
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 benchmarks: $(VENV)/.installed
 	for script in benchmarks/*.py; do $(BIN)/python $$script || exit 1; done
