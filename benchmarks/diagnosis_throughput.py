@@ -14,6 +14,7 @@ from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.library import Hypothesis, library
 from contactbench.diagnosis.segments import SegmentSimulator, cut_segments
 from contactbench.recordings import read_recordings
+from contactbench.sim.rollout import counted_warnings
 
 CUBE_DATA = Path(__file__).resolve().parents[1] / "assets" / "contactnets_cube"
 
@@ -52,15 +53,16 @@ def main() -> None:
     ]
     states = np.empty((args.batch * segments.count, args.segment_frames, rollouts.nstate))
     started = time.perf_counter()
-    for models in prepared:
-        mujoco.rollout.rollout(
-            models,
-            rollouts._data,
-            np.tile(initial, (args.batch, 1)),
-            nstep=args.segment_frames,
-            state=states,
-            persistent_pool=True,
-        )
+    with counted_warnings():  # as the library's rollouts do
+        for models in prepared:
+            mujoco.rollout.rollout(
+                models,
+                rollouts._data,
+                np.tile(initial, (args.batch, 1)),
+                nstep=args.segment_frames,
+                state=states,
+                persistent_pool=True,
+            )
     bare_seconds = time.perf_counter() - started
 
     steps = args.repeats * args.batch * segments.count * args.segment_frames

@@ -15,7 +15,7 @@ import numpy as np
 from contactbench.kinematics import estimate_velocities
 from contactbench.recordings import Recordings, read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters
-from contactbench.sim.rollout import MujocoRollouts
+from contactbench.sim.rollout import MujocoRollouts, counted_warnings
 
 CUBE_DATA = Path(__file__).resolve().parents[1] / "assets" / "contactnets_cube"
 
@@ -69,7 +69,8 @@ def measure(name: str, simulator: MujocoRollouts, params, poses0, velocities0, n
         result = simulator.simulate(params, poses0, velocities0, n_steps)
         wrapped.append(time.perf_counter() - started)
         started = time.perf_counter()
-        mujoco.rollout.rollout(models, data, initial, nstep=nstep, persistent_pool=True)
+        with counted_warnings():  # as simulate does
+            mujoco.rollout.rollout(models, data, initial, nstep=nstep, persistent_pool=True)
         bare.append(time.perf_counter() - started)
     total_steps = len(models) * nstep
     wrapped_rate, bare_rate = total_steps / min(wrapped), total_steps / min(bare)

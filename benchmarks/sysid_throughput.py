@@ -15,7 +15,7 @@ from contactbench.models.sysid.module import stop_recast_threads
 from contactbench.models.sysid.objective import ConfigurationObjective, subset
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.recordings import read_recordings
-from contactbench.sim.rollout import MujocoRollouts
+from contactbench.sim.rollout import MujocoRollouts, counted_warnings
 
 CUBE_DATA = Path(__file__).resolve().parents[1] / "assets" / "contactnets_cube"
 
@@ -69,8 +69,9 @@ def main() -> None:
         models = [rollouts.model(p) for p in parameters for _ in indices]
         prepared.append((models, np.tile(initial, (len(parameters), 1)), context.horizon - args.context_frames))
     started = time.perf_counter()
-    for models, initial, n_steps in prepared:
-        mujoco.rollout.rollout(models, rollouts._data, initial, nstep=n_steps, persistent_pool=True)
+    with counted_warnings():  # as simulate does
+        for models, initial, n_steps in prepared:
+            mujoco.rollout.rollout(models, rollouts._data, initial, nstep=n_steps, persistent_pool=True)
     bare_seconds = time.perf_counter() - started
 
     evaluations = args.generations * args.num_workers

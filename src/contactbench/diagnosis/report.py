@@ -4,18 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")  # files only
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from contactbench import atomic  # noqa: E402
-from contactbench.diagnosis.phases import PHASES, label_phases  # noqa: E402
-from contactbench.diagnosis.segments import COMPONENTS  # noqa: E402
-from contactbench.evaluation.figures import save_figure  # noqa: E402
-from contactbench.models.base import make_context  # noqa: E402
-from contactbench.sim.rollout import rollout_context  # noqa: E402
+from contactbench import atomic
+from contactbench.diagnosis.phases import PHASES, label_phases
+from contactbench.diagnosis.segments import COMPONENTS
+from contactbench.evaluation.figures import new_figure, save_figure
+from contactbench.models.base import make_context
+from contactbench.sim.rollout import rollout_context
 
 
 def write_diagnosis(document: dict, arrays: dict, out_dir: Path) -> Path:
@@ -166,7 +162,8 @@ def _free_flight_table(found: dict) -> list[str]:
 def _phase_components(located: dict, path: Path) -> Path:
     cells = np.array([[located["cells"][f"{p}/{c}"] for c in COMPONENTS] for p in PHASES])
     errors = np.array([[located["cells_ci95"][f"{p}/{c}"] for c in COMPONENTS] for p in PHASES])  # [P, C, 2]
-    figure, axis = plt.subplots(figsize=(7, 3.6))
+    figure = new_figure(figsize=(7, 3.6))
+    axis = figure.subplots()
     width = 0.8 / len(COMPONENTS)
     for j, component in enumerate(COMPONENTS):
         x = np.arange(len(PHASES)) + j * width
@@ -195,7 +192,8 @@ def _signature(arrays: dict, path: Path) -> Path | None:
     change = base_residuals - fit.residuals(final, arrays["final_values"][None])[0].ravel()
     rng = np.random.default_rng(0)
     shown = rng.choice(len(change), size=min(len(change), 20000), replace=False)
-    figure, axis = plt.subplots(figsize=(4.6, 4.2))
+    figure = new_figure(figsize=(4.6, 4.2))
+    axis = figure.subplots()
     axis.scatter(change[shown], base_residuals[shown], s=2, alpha=0.3)
     limit = np.percentile(np.abs(change), 99.5) * 1.2 or 1.0
     axis.plot([-limit, limit], [-limit, limit], color="k", lw=0.8)
@@ -222,7 +220,8 @@ def _trajectory(arrays: dict, path: Path) -> Path:
     phases = label_phases(dataset, test)[0, :, 0]
     length = int(test.lengths[0])
     time = np.arange(length) * dataset.dt
-    figure, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    figure = new_figure(figsize=(9, 3.4))
+    axes = figure.subplots(1, 2)
     for axis, coordinate, label in ((axes[0], 0, "x (m)"), (axes[1], 2, "z (m)")):
         for phase, colour in zip(range(1, len(PHASES)), ("tab:red", "tab:orange", "tab:green", "tab:gray")):
             mask = phases[:length] == phase
@@ -250,7 +249,8 @@ def _candidates(candidates: list[dict], margin: float, path: Path) -> Path | Non
     scored = [c for c in candidates if c.get("val_improvement") is not None]
     if not scored:
         return None
-    figure, axis = plt.subplots(figsize=(6, 0.4 * len(scored) + 1.4))
+    figure = new_figure(figsize=(6, 0.4 * len(scored) + 1.4))
+    axis = figure.subplots()
     labels = [f"{c['name']} (round {c['round']})" for c in scored]
     values = np.array([c["closes_of_base_loss"] for c in scored])
     low = np.array([c["closes_ci95"][0] for c in scored])

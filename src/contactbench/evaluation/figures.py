@@ -7,11 +7,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")  # files only: no display on CI or a cluster node
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 # dataset -> (varied parameter, figure title as in the paper)
 SWEEPS = {
@@ -68,7 +66,8 @@ def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
     if not grouped:
         return None
     parameter, title = SWEEPS[dataset]
-    figure, axes = plt.subplots(1, len(PANELS), figsize=(4.2 * len(PANELS), 3.4))
+    figure = new_figure(figsize=(4.2 * len(PANELS), 3.4))
+    axes = figure.subplots(1, len(PANELS))
     for axis, (key, label) in zip(axes, PANELS):
         for model, group in grouped.items():
             x = [run.value for run in group]
@@ -90,7 +89,8 @@ def per_frame_figure(
     chosen = [run for run in chosen if values is None or run.value in values]
     if not chosen:
         return None
-    figure, axis = plt.subplots(figsize=(6, 3.6))
+    figure = new_figure(figsize=(6, 3.6))
+    axis = figure.subplots()
     for run in sorted(chosen, key=lambda r: (r.summary["model"], r.value)):
         curve = np.array([np.nan if v is None else v for v in run.summary["per_frame"][key]], dtype=float)
         axis.plot(curve, label=f"{run.summary['model']} {run.summary['variant']}")
@@ -109,7 +109,8 @@ def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
             counts.setdefault(int(run.value), run.per_trajectory["pairwise_collisions_true"])
     if not counts:
         return None
-    figure, axis = plt.subplots(figsize=(5, 3.6))
+    figure = new_figure(figsize=(5, 3.6))
+    axis = figure.subplots()
     bodies = sorted(counts)
     axis.boxplot([counts[k] for k in bodies], positions=bodies)
     axis.set_xlabel("bodies K")
@@ -161,13 +162,20 @@ def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str,
     return [path for path in drawn if path is not None], importance_table(runs)
 
 
-def save_figure(figure, path: Path) -> Path:
-    """Write a figure atomically and close it."""
+def new_figure(**kwargs) -> Figure:
+    """A figure drawn by Agg into files only. Made outside pyplot, so no backend is selected, no display is needed
+    (CI, a cluster node) and nothing global changes: the figure is freed like any object."""
+    figure = Figure(**kwargs)
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def save_figure(figure: Figure, path: Path) -> Path:
+    """Write a figure atomically."""
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial.png")
     figure.savefig(partial, dpi=110)
-    plt.close(figure)
     partial.replace(path)
     return path
 
@@ -175,7 +183,8 @@ def save_figure(figure, path: Path) -> Path:
 def learning_curve_figure(curves: dict[tuple[str, str], list[tuple[float, float, float]]], path: Path) -> Path:
     """Held-out position and rotation error against training wall time; curves[(model, dataset)] = [(s, pos, rot)]."""
     datasets = sorted({dataset for _, dataset in curves})
-    figure, axes = plt.subplots(2, len(datasets), figsize=(4.5 * len(datasets), 6), squeeze=False)
+    figure = new_figure(figsize=(4.5 * len(datasets), 6))
+    axes = figure.subplots(2, len(datasets), squeeze=False)
     for column, dataset in enumerate(datasets):
         for (model, curve_dataset), points in sorted(curves.items()):
             if curve_dataset != dataset or not points:

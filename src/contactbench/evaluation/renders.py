@@ -11,20 +11,16 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.animation import FuncAnimation, PillowWriter
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+from omegaconf import OmegaConf
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
-
-from contactbench import runs  # noqa: E402
-from contactbench.evaluation.figures import save_figure  # noqa: E402
-from contactbench.kinematics import world_vertices  # noqa: E402
-from contactbench.meshes import Mesh  # noqa: E402
-from contactbench.models.base import make_context  # noqa: E402
+from contactbench import runs
+from contactbench.evaluation.figures import new_figure, save_figure
+from contactbench.kinematics import world_vertices
+from contactbench.meshes import Mesh
+from contactbench.models.base import make_context
 
 log = logging.getLogger(__name__)
 COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
@@ -88,7 +84,7 @@ def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
 def final_poses_figure(rollouts: Rollouts, path: Path) -> Path:
     """Figs. 4 and 6 of the paper: the last frame of ground truth (grey) and of every method, per toss."""
     count = len(rollouts.truth)
-    figure = plt.figure(figsize=(4.2 * count, 4.0))
+    figure = new_figure(figsize=(4.2 * count, 4.0))
     for n in range(count):
         axis = figure.add_subplot(1, count, n + 1, projection="3d")
         last = int(rollouts.lengths[n]) - 1
@@ -105,7 +101,7 @@ def final_poses_figure(rollouts: Rollouts, path: Path) -> Path:
 def rollout_gif(rollouts: Rollouts, path: Path, toss: int = 0, every: int = 3) -> Path:
     """An animation of one toss: ground truth and every method, side by side."""
     panels = {"ground truth": rollouts.truth, **rollouts.predicted}
-    figure = plt.figure(figsize=(3.0 * len(panels), 3.2))
+    figure = new_figure(figsize=(3.0 * len(panels), 3.2))
     axes = [figure.add_subplot(1, len(panels), i + 1, projection="3d") for i in range(len(panels))]
     frames = range(0, int(rollouts.lengths[toss]), every)
 
@@ -122,7 +118,6 @@ def rollout_gif(rollouts: Rollouts, path: Path, toss: int = 0, every: int = 3) -
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial.gif")
     animation.save(partial, writer=PillowWriter(fps=15))
-    plt.close(figure)
     partial.replace(path)
     return path
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections import Counter, OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -32,7 +34,8 @@ from contactbench.sim.mujoco_scene import (
 log = logging.getLogger(__name__)
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
 # MuJoCo prints every solver warning to stdout (a search can print millions of "Linesearch objective is not
-# convex"); count them instead and log the first of each kind. Divergence itself is detected from the states.
+# convex"); during our rollouts they are counted instead and the first of each kind is logged. Divergence itself is
+# detected from the states.
 WARNINGS: Counter[str] = Counter()
 
 
@@ -42,7 +45,31 @@ def _count_warning(message: str) -> None:
         log.debug("MuJoCo: %s (further ones counted in contactbench.sim.rollout.WARNINGS)", message.strip())
 
 
-mujoco.set_mju_user_warning(_count_warning)
+_hook_lock = threading.Lock()
+_hook_users = 0
+_hook_previous = None
+
+
+@contextmanager
+def counted_warnings() -> Iterator[None]:
+    """MuJoCo's warnings go to WARNINGS while any caller is inside (rollouts may overlap: a timed-out one runs on);
+    the process's previous warning hook is restored when the last one leaves. Importing installs nothing."""
+    global _hook_users, _hook_previous
+    with _hook_lock:
+        if _hook_users == 0:
+            _hook_previous = mujoco.get_mju_user_warning()
+            mujoco.set_mju_user_warning(_count_warning)
+        _hook_users += 1
+    try:
+        yield
+    finally:
+        with _hook_lock:
+            _hook_users -= 1
+            if _hook_users == 0:
+                mujoco.set_mju_user_warning(_hook_previous)
+                _hook_previous = None
+
+
 # MuJoCo answers a NaN/huge state by resetting the data, which zeroes its time; starting every rollout at a
 # non-zero time makes such a reset visible in the returned states.
 START_TIME = 1.0
@@ -169,19 +196,20 @@ class MujocoRollouts:
             groups: dict[tuple, list[int]] = {}
             for index, model in enumerate(models):
                 groups.setdefault(structure_key(model), []).append(index)
-            for key, members in groups.items():
-                rows = np.concatenate([np.arange(i * len(initial), (i + 1) * len(initial)) for i in members])
-                out = states if len(groups) == 1 else np.empty((len(rows), n_substeps, self.nstate))
-                mujoco.rollout.rollout(
-                    [models[i] for i in members for _ in range(len(initial))],
-                    self._data_for(key, models[members[0]]),
-                    np.tile(initial, (len(members), 1)),
-                    nstep=n_substeps,
-                    state=out,
-                    persistent_pool=self._persistent_pool,
-                )
-                if len(groups) > 1:
-                    states[rows] = out
+            with counted_warnings():
+                for key, members in groups.items():
+                    rows = np.concatenate([np.arange(i * len(initial), (i + 1) * len(initial)) for i in members])
+                    out = states if len(groups) == 1 else np.empty((len(rows), n_substeps, self.nstate))
+                    mujoco.rollout.rollout(
+                        [models[i] for i in members for _ in range(len(initial))],
+                        self._data_for(key, models[members[0]]),
+                        np.tile(initial, (len(members), 1)),
+                        nstep=n_substeps,
+                        state=out,
+                        persistent_pool=self._persistent_pool,
+                    )
+                    if len(groups) > 1:
+                        states[rows] = out
         frames = states[:, self.substeps - 1 :: self.substeps]
         if self.substeps > 1:  # keep the returned frames, not every substep, alive
             frames = np.ascontiguousarray(frames)
