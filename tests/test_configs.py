@@ -1,0 +1,119 @@
+"""Every config in conf/ composes, resolves and names importable classes (after lightning-hydra-template's
+test_configs): each entry config with each option of each config group it uses, and every model with every budget.
+
+Cheap, side-effect-free parts are instantiated (scenes, analytical models, callbacks, the CPU trainer, the file
+loggers); models, data modules and the remote loggers are only checked to be importable (they need data or a
+service). Nothing here reads a dataset or starts a run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import get_class, instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from contactbench import runs
+from contactbench.config import CONFIG_DIR
+from contactbench.models.analytical import preset_parameters
+
+ENTRIES = ["train", "evaluate", "generate", "diagnose"]
+
+
+def options(group: str) -> list[str]:
+    return sorted(path.stem for path in (CONFIG_DIR / group).glob("*.yaml"))
+
+
+def entry_groups(entry: str) -> list[str]:
+    """The config groups an entry config selects in its defaults list (paths, budget, model, ...)."""
+    defaults = OmegaConf.load(CONFIG_DIR / f"{entry}.yaml").defaults
+    groups = [next(iter(item)) for item in defaults if isinstance(item, DictConfig)]
+    return [group for group in groups if (CONFIG_DIR / group).is_dir()]
+
+
+def cases(entry: str) -> list[list[str]]:
+    """Override lists: the defaults, each option of each group the entry uses, each launcher; for train (evaluate
+    composes the same model and budget nodes) every model with every budget, since each budget file knows every
+    model."""
+    found = [[]]
+    for group in entry_groups(entry):
+        found += [[f"{group}={option}"] for option in options(group)]
+    if entry == "train":
+        found += [[f"model={m}", f"budget={b}"] for m in options("model") for b in options("budget")]
+    found += [[f"hydra/launcher={launcher}"] for launcher in options("hydra/launcher")]
+    return found
+
+
+@pytest.fixture(scope="module")
+def hydra_configs():
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        yield
+    GlobalHydra.instance().clear()
+
+
+def targets(node) -> list[str]:
+    """Every _target_ in a config tree."""
+    if isinstance(node, dict):
+        found = [node["_target_"]] if "_target_" in node else []
+        return found + [t for value in node.values() for t in targets(value)]
+    if isinstance(node, list):
+        return [t for value in node for t in targets(value)]
+    return []
+
+
+def test_every_group_option_is_covered():
+    listed = [overrides for entry in ENTRIES for overrides in cases(entry)]
+    for group in ("model", "dataset", "variant", "budget", "logger", "trainer", "generation", "paths"):
+        for option in options(group):
+            assert any(f"{group}={option}" in overrides for overrides in listed), (group, option)
+    assert {"model", "dataset", "variant", "budget", "trainer", "logger"} <= set(entry_groups("train"))
+    assert {"budget", "paths"} <= set(entry_groups("diagnose"))
+
+
+@pytest.mark.parametrize("entry", ENTRIES)
+def test_every_config_composes_resolves_and_instantiates(entry: str, hydra_configs, tmp_path: Path):
+    for overrides in cases(entry):
+        needs_recordings = entry == "diagnose" or "dataset=recordings" in overrides
+        extra = [f"recordings={tmp_path / 'some recordings'}"] if needs_recordings else []
+        launcher = any(o.startswith("hydra/launcher=") for o in overrides)
+        cfg = compose(
+            config_name=entry,
+            overrides=[f"paths.log_dir={tmp_path}/outputs", f"paths.data_dir={tmp_path}/data", *overrides, *extra],
+            return_hydra_config=launcher,
+        )
+        where = f"{entry} {' '.join(overrides)}"
+        if launcher:  # hydra's own node needs a running job to resolve; its launcher class must import
+            get_class(cfg.hydra.launcher._target_)
+            continue
+        resolved = OmegaConf.to_container(cfg, resolve=True)  # every interpolation and resolver
+        for target in targets(resolved):
+            assert get_class(target), f"{where}: {target}"
+        check_instantiable(cfg, tmp_path, where)
+
+
+def check_instantiable(cfg: DictConfig, tmp_path: Path, where: str) -> None:
+    if cfg.get("dataset") is not None and cfg.dataset.scene is not None:
+        instantiate(cfg.dataset.scene)
+    model = cfg.get("model")
+    if model is not None:
+        if model.kind == "analytical":
+            contact_model = instantiate(model.contact_model)
+            preset_parameters(contact_model.preset, 1)
+        else:
+            assert model.kind == "lightning", where
+            callbacks = [runs._callback(node, tmp_path / "checkpoints") for node in model.get("callbacks", {}).values()]
+            if cfg.get("trainer") is not None and cfg.trainer.accelerator == "cpu":
+                instantiate(
+                    cfg.trainer,
+                    **model.get("trainer", {}),
+                    callbacks=callbacks,
+                    logger=False,
+                    default_root_dir=str(tmp_path / "run"),
+                )
+    logger = cfg.get("logger")
+    if logger is not None and logger._target_.endswith(("CSVLogger", "TensorBoardLogger")):
+        instantiate(logger, save_dir=str(tmp_path / "run"))
