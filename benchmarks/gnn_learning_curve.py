@@ -39,10 +39,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "outputs" / "benchmarks" / "gnn_learning_curve")
     parser.add_argument("--budget", default="quick")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    parser.add_argument("--models", nargs="+", default=list(MODELS))
+    parser.add_argument("--draw-only", action="store_true", help="train nothing: draw the runs already in --out")
     args = parser.parse_args()
     curves, table = {}, []
-    for variant in VARIANTS:
-        for model in MODELS:
+    for variant in args.variants:
+        for model in args.models:
             run_dir = args.out / f"{model}_{variant}"
             with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
                 cfg = compose(
@@ -54,7 +57,7 @@ def main() -> None:
                 cfg.budget.gnn_paper.val_check_interval = cfg.budget.gnn.val_check_interval
                 cfg.budget.gnn_paper.val_rollouts = cfg.budget.gnn.val_rollouts
             started = time.perf_counter()
-            if (run_dir / "fitted.json").is_file():
+            if (run_dir / "fitted.json").is_file() or args.draw_only:
                 val_pos_err = json.loads((run_dir / "val" / "metrics.json").read_text())["pos_err"]
             else:
                 val_pos_err = runs.train(cfg, run_dir)
