@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from contactbench import rotations
 from contactbench.meshes import Mesh
@@ -79,3 +80,12 @@ def falling_cubes(
 @pytest.fixture
 def small_recordings() -> Recordings:
     return falling_cubes()
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Tiny graphs: handing ops to a second thread costs more than it saves, ~50x more when the cores are busy."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -26,13 +26,7 @@ from contactbench.recordings import Recordings, Split, read_recordings
 TINY = {"latent_size": 16, "message_passing_steps": 2}
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny graphs: handing ops to a second thread costs more than it saves, ~50x more when the cores are busy."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def without_spin(recordings: Recordings) -> Recordings:

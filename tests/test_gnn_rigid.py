@@ -27,12 +27,7 @@ from contactbench.tracking import ResumableCSVLogger, drop_rows_from_step
 TINY = {"latent_size": 16, "message_passing_steps": 2}
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def rigid_simulator(recordings, **options) -> RigidLearnedSimulator:

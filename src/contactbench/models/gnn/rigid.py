@@ -128,16 +128,16 @@ class RigidLearnedSimulator(LearnedSimulator):
     # ------------------------------------------------------------ one step
 
     def node_features_double(self, vertices: torch.Tensor) -> torch.Tensor:
-        """The paper's node features, velocities differenced in float64 before the float32 network sees them, and two
+        """The paper's node features (velocities differenced in float64 before the float32 network sees them), and two
         finer heights in units of the contact distance: now, and at the next frame if the vertex flew on freely
         (h + (v_z + g_z dt) dt, negative when the next step would reach the floor: where an impact is decided)."""
-        velocities = torch.diff(vertices, dim=1) / self.dt
-        history = ((velocities - self.velocity_mean) / self.velocity_std).permute(0, 2, 1, 3).flatten(2)
+        batch, _, n_nodes, _ = vertices.shape
         height = vertices[:, -1, :, 2:] - self.floor_z
-        free_flight = height + (velocities[:, -1, :, 2:] + self.scene_gravity[2] * self.dt) * self.dt
+        vertical_speed = (vertices[:, -1, :, 2:] - vertices[:, -2, :, 2:]) / self.dt
+        free_flight = height + (vertical_speed + self.scene_gravity[2] * self.dt) * self.dt
         fine = (torch.cat([height, free_flight], dim=-1) / self.contact_distance).clamp(min=-1.0, max=1.0)
-        coarse = height.clamp(max=self.radius) / self.radius
-        return torch.cat([history, coarse, fine], dim=-1).flatten(0, 1).float()
+        paper = self.node_features(vertices).reshape(batch, n_nodes, -1)
+        return torch.cat([paper, fine], dim=-1).flatten(0, 1).float()
 
     def edge_features(self, current: torch.Tensor, edge_index: torch.Tensor, n_mesh_edges: int) -> torch.Tensor:
         """The paper's 9 edge features, and on collision edges how deep the receiver is inside the sender's body.

@@ -186,7 +186,8 @@ class NevergradSearch(pl.Callback):
         path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(".last.ckpt.partial")
-        trainer.save_checkpoint(str(partial), weights_only=False)  # with the optimiser state, explicitly
+        # Lightning's default checkpoint carries callback states: this search's are numbers only, loaded weights_only
+        trainer.save_checkpoint(str(partial))
         os.replace(partial, path)
 
     def _new_optimizer(self, module: SysIDModule):
