@@ -5,23 +5,22 @@ BIN = $(VENV)/bin
 
 .PHONY: main test lint benchmarks matrix
 
-# The embedded default: one generated variant and the real cube, every model at budget=quick, scored on val and
-# test, then one results table.
-MAIN_MODELS = mujoco_default,mujoco_fixed,sysid,gnn,hybrid
+# The embedded default, conf/experiment/main.yaml: one generated variant and the real cube, every model at
+# budget=quick, scored on val and test, then one results table.
 main: $(VENV)/.installed
 	$(BIN)/python generate.py variant=frictioncubes_0.5
-	$(BIN)/python train.py -m model=$(MAIN_MODELS) variant=frictioncubes_0.5,contactnets_cube budget=quick test=true hydra.sweep.dir=outputs/main
+	$(BIN)/python train.py -m experiment=main
 	$(BIN)/python -m contactbench.evaluation.report outputs/main
 
-# The whole benchmark at one budget: {mujoco_default, sysid, gnn, hybrid} x 22 synthetic variants + the real cube,
-# scored on val and test, then the report. The hybrid model skips multi-body variants with one line each.
-# `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep to a Slurm cluster.
+# The whole benchmark at one budget, conf/experiment/matrix.yaml: {mujoco_default, sysid, gnn, hybrid} x 22
+# synthetic variants + the real cube, scored on val and test, then the report. The hybrid model skips multi-body
+# variants with one line each. `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep
+# to a Slurm cluster.
 BUDGET ?= quick
 ARGS ?=
-MATRIX_MODELS = mujoco_default,sysid,gnn,hybrid
 matrix: $(VENV)/.installed
 	$(BIN)/python generate.py -m 'variant=glob(*)'
-	$(BIN)/python train.py -m model=$(MATRIX_MODELS) 'variant=glob(*)' budget=$(BUDGET) test=true hydra.sweep.dir=outputs/matrix/$(BUDGET) $(ARGS)
+	$(BIN)/python train.py -m experiment=matrix budget=$(BUDGET) $(ARGS)
 	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/$(BUDGET)
 
 test: $(VENV)/.installed

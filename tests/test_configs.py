@@ -67,11 +67,20 @@ def targets(node) -> list[str]:
 
 def test_every_group_option_is_covered():
     listed = [overrides for entry in ENTRIES for overrides in cases(entry)]
-    for group in ("model", "dataset", "variant", "budget", "logger", "trainer", "generation", "paths"):
+    for group in ("model", "dataset", "variant", "budget", "logger", "trainer", "generation", "paths", "experiment"):
         for option in options(group):
             assert any(f"{group}={option}" in overrides for overrides in listed), (group, option)
     assert {"model", "dataset", "variant", "budget", "trainer", "logger"} <= set(entry_groups("train"))
     assert {"budget", "paths"} <= set(entry_groups("diagnose"))
+
+
+@pytest.mark.parametrize("experiment", options("experiment"))
+def test_an_experiment_sweeps_over_options_that_exist(experiment: str):
+    params = OmegaConf.load(CONFIG_DIR / "experiment" / f"{experiment}.yaml").hydra.sweeper.params
+    assert set(params) == {"model", "variant"}
+    for group, values in params.items():
+        chosen = options(group) if values == "glob(*)" else values.split(",")
+        assert chosen and set(chosen) <= set(options(group)), (experiment, group, values)
 
 
 @pytest.mark.parametrize("entry", ENTRIES)

@@ -51,7 +51,12 @@ def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_pat
     for document in (with_generator, without):
         document.pop("recordings"), document.pop("seconds")
     assert with_generator == without  # stripping meta.generator changes nothing
-    assert with_generator["verdict"] in ("effect", "none")
+    # the verdict says what the document holds
+    named, verdict = bool(with_generator["effects"]), with_generator["verdict"]
+    assert named == (verdict in ("effect", "unconfirmed"))
+    assert (verdict == "unconfirmed") == (named and not with_generator["heldout"]["confirmed"])
+    assert (verdict == "confounded") == bool(with_generator["confounded"])
+    assert (verdict == "unexplained") == bool((with_generator["open_world"] or {}).get("passes"))
     assert {"verdict", "effects", "located", "heldout", "candidates"} <= set(with_generator)
     assert set(with_generator["located"]["phase_shares"]) == {"free", "impact", "sliding", "rolling", "rest"}
     assert sum(with_generator["located"]["phase_shares"].values()) == pytest.approx(1.0)

@@ -196,3 +196,32 @@ def test_the_library_models_gravity_scale_as_mujocos_gravity():
     assert hypothesis.contact_parameters(values).effects.gravity_scale == 1.0  # starts switched off
     values[-1] = 0.95
     assert hypothesis.contact_parameters(values).effects.gravity_scale == pytest.approx(0.95)
+
+
+def test_effects_outside_the_library_do_what_they_say_and_have_no_library_name():
+    from contactbench.diagnosis.library import library
+    from contactbench.generation.effects import OUTSIDE_LIBRARY
+
+    assert not set(OUTSIDE_LIBRARY) & set(library(WIDTH))
+    # Coriolis in free flight: v_{t+1} - v_t = dt (g - 2 Omega z x v_t), semi-implicit Euler as PyBullet steps.
+    effects = ConcealedEffects.named(["coriolis"], 1.0)
+    _, velocities = fly(effects, velocity=(2.0, 1.0, 0.0, 0.0, 0.0, 0.0))
+    dv = np.diff(velocities[:, 0, :3], axis=0) / SETTINGS.dt - SETTINGS.gravity
+    v = velocities[:-1, 0, :3]
+    expected = -2 * effects.coriolis * np.cross([0.0, 0.0, 1.0], v)
+    np.testing.assert_allclose(dv, expected, atol=1e-9)
+    assert np.abs(dv).max() > 1.0
+    # The floor's effects act only in contact: in the air the flight is the plain one.
+    plain, _ = fly(ConcealedEffects(), velocity=(2.0, 1.0, 0.0, 0.0, 0.0, 0.0))
+    for name in ("floor_viscosity", "floor_centring"):
+        flown, _ = fly(ConcealedEffects.named([name], 2.0), velocity=(2.0, 1.0, 0.0, 0.0, 0.0, 0.0))
+        np.testing.assert_array_equal(flown, plain)
+    # On the floor, both slow a cube sliding away from the floor's centre; in the air above it they did nothing.
+    start = np.array([[0.3, 0.0, WIDTH / 2, 1.0, 0.0, 0.0, 0.0]])
+
+    def slide(effects):
+        with BulletScene(CUBE, SPEC, SETTINGS, effects) as scene:
+            return scene.simulate(start, np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]]), 60)[0][-1, 0, 0]
+
+    for name in ("floor_viscosity", "floor_centring"):
+        assert slide(ConcealedEffects.named([name])) < slide(ConcealedEffects()) - 0.01, name

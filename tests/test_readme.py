@@ -89,11 +89,12 @@ class Checker:
         )
         for name in settings_:
             assert name in self.variables, f"make {' '.join(words)}: the Makefile has no variable {name}"
-        if "matrix" in targets:  # BUDGET and ARGS go to `train.py -m ... 'variant=glob(*)' budget=$(BUDGET) $(ARGS)`
+        if "matrix" in targets:  # BUDGET and ARGS go to `train.py -m experiment=matrix budget=$(BUDGET) $(ARGS)`
             budget = settings_.get("BUDGET", self.variables["BUDGET"])
             self.compose(
                 "train",
                 [
+                    "experiment=matrix",
                     "model=mujoco_default",
                     "variant=glob(*)",
                     f"budget={budget}",

@@ -31,9 +31,18 @@ def test_tiny_matrix_multirun_then_report(tmp_path):
     assert len(re.findall(r"^\| (mujoco_default|sysid) \| frictioncubes", text, flags=re.M)) == 8
     for figure in ("frictioncubes.png", "fig7c_lowest_vertex.png"):
         assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
-    table3 = re.findall(r"^\| (mujoco_default|sysid) \| N/A \| (Yes|No) \| N/A \| N/A \|$", text, flags=re.M)
+    # the grid: one row per variant, a column per model, test position / rotation with val position beside
+    assert "| dataset | variant | mujoco_default | sysid |" in text
+    cell = r"[0-9.]+ / [0-9.]+ \(val [0-9.]+\)"
+    assert len(re.findall(rf"^\| frictioncubes \| friction=(0|1) \| {cell} \| {cell} \|$", text, re.M)) == 2
+    for figure in ("error_over_time_frictioncubes.png", "error_over_time_frictioncubes.svg"):
+        assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
+    # Table 3 only over the dimension these runs vary (friction), saying what the others need
+    table3 = re.findall(r"^\| (mujoco_default|sysid) \| (Yes|No) \|$", text, flags=re.M)
     assert sorted(model for model, _ in table3) == ["mujoco_default", "sysid"]
-    assert "<table" in (tmp_path / "sweep" / "results.html").read_text()
+    assert "needs test runs on at least two variants of): bouncycubes (restitution)" in text
+    page = (tmp_path / "sweep" / "results.html").read_text()
+    assert "<table>" in page and "<style>" in page and 'src="data:image/png;base64,' in page  # one self-contained file
     # Renders: the models rebuilt from their run folders and rolled out again, drawn headless.
     final_poses = list((tmp_path / "sweep" / "renders").glob("final_poses_*.png"))
     assert final_poses and final_poses[0].stat().st_size > 10_000

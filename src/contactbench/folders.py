@@ -7,6 +7,7 @@ import re
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
@@ -137,3 +138,40 @@ def _write_hydra_record(cfg: DictConfig, output_dir: Path) -> None:
     atomic.write_text(record / "config.yaml", OmegaConf.to_yaml(cfg))
     atomic.write_text(record / "hydra.yaml", OmegaConf.to_yaml(hydra_cfg))
     atomic.write_text(record / "overrides.yaml", OmegaConf.to_yaml(hydra_cfg.hydra.overrides.task))
+
+
+def check_fitted_state(state: object, path: Path, field: str) -> None:
+    """A fitted state is a dict of finite numbers, strings, booleans and lists of them (nested): JSON, never code."""
+
+    def plain(value: object) -> bool:
+        if isinstance(value, bool | str) or value is None:
+            return True
+        if isinstance(value, int | float):
+            return bool(np.isfinite(value))
+        if isinstance(value, list | tuple):
+            return all(plain(item) for item in value)
+        if isinstance(value, dict):
+            return all(isinstance(key, str) and plain(item) for key, item in value.items())
+        return False
+
+    if not isinstance(state, dict) or not plain(state):
+        raise FolderRefused(
+            f"{path}: field '{field}' is not plain JSON data (expected a dict of finite numbers, strings, booleans and "
+            f"lists of them; got {type(state).__name__} {_clip(repr(state))})"
+        )
+
+
+def read_fitted_state(path: Path) -> dict:
+    """The `state` an analytical model's train run wrote to fitted.json, checked before the model sees it."""
+    try:
+        document = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise FolderRefused(f"{path}: not valid JSON ({error}); expected the fitted.json train.py wrote") from None
+    if not isinstance(document, dict) or "state" not in document:
+        raise FolderRefused(f"{path}: field 'state' is missing (expected the fitted state train.py wrote)")
+    check_fitted_state(document["state"], path, "state")
+    return document["state"]
+
+
+def _clip(text: str, limit: int = 80) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -91,6 +91,9 @@ def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> Cont
     if kind == "analytical":
         model = instantiate(cfg.model.contact_model)
         model.fit(dataset)
+        state = model.fitted_state()
+        folders.check_fitted_state(state, output_dir / "fitted.json", f"{cfg.model.name}.fitted_state()")
+        atomic.write_json(output_dir / "fitted.json", {"model": cfg.model.name, "state": state})
         return model
     if kind == "lightning":
         return _fit_lightning(cfg, dataset, output_dir, logger)
@@ -140,15 +143,20 @@ def _load_module(cfg: DictConfig, dataset: Recordings, checkpoint: Path):
 
 def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> ContactModel:
     """The model a train run selected, rebuilt from its run folder (checkpoints load with weights_only=True)."""
-    if cfg.model.kind == "analytical":
-        return instantiate(cfg.model.contact_model)
     record = Path(train_dir) / "fitted.json"
+    if cfg.model.kind == "analytical":
+        model = instantiate(cfg.model.contact_model)
+        if not record.is_file() and not model.learns:
+            return model  # nothing to fit (MuJoCo's defaults): no train run needed
     if not record.is_file():
         raise FileNotFoundError(
             f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget "
             "first"
         )
     folders.check_signature(cfg, Path(train_dir), "score the model of")
+    if cfg.model.kind == "analytical":
+        model.load_fitted_state(folders.read_fitted_state(record))
+        return model
     checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
     return _load_module(cfg, dataset.for_models(), checkpoint).to_contact_model()
 

@@ -8,11 +8,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contactbench.diagnosis import free_flight
+from contactbench.diagnosis import free_flight, open_world
 from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.library import Hypothesis, library
 from contactbench.diagnosis.phases import FREE, PHASES, label_phases
-from contactbench.diagnosis.segments import COMPONENTS, SegmentSimulator, cut_segments, residual_parts
+from contactbench.diagnosis.segments import (
+    COMPONENTS,
+    UNSTABLE_RESIDUAL,
+    SegmentSimulator,
+    cut_segments,
+    residual_parts,
+)
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model
 from contactbench.models.analytical import MujocoContactModel
@@ -32,6 +38,7 @@ class Budget:
     front_runners: int = 10  # effects fitted in full after screening, per round (10: the whole library)
     max_effects: int = 2
     bootstrap: int = 1000
+    open_world_terms: int = 8  # most terms of the open-world correction (diagnosis.open_world)
 
 
 @dataclass(frozen=True)
@@ -90,14 +97,17 @@ class Diagnosis:
         train, val = dataset.split("train"), dataset.split("val")
         fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
         val_rows = _pick(self.rng, val.n_trajectories, budget.val_trajectories)
+        self.train_split = train.select(fit_rows)
         self.train_fit = ResidualFit(
-            SegmentSimulator(dataset, cut_segments(dataset, train.select(fit_rows), budget.segment_frames))
+            SegmentSimulator(dataset, cut_segments(dataset, self.train_split, budget.segment_frames))
         )
         self.val_split = val.select(val_rows)
         self.val_fit = ResidualFit(
             SegmentSimulator(dataset, cut_segments(dataset, self.val_split, budget.segment_frames))
         )
         self.timings: dict[str, float] = {}
+        self.confounded: list[str] = []  # effects the first naming round could not tell apart
+        self.given_the_others: list[dict] = []  # each named effect judged against the model without it
 
     # ---------------------------------------------------------------- steps
 
@@ -264,17 +274,165 @@ class Diagnosis:
             if not passing:
                 break
             best = max(passing, key=lambda item: item[0]["val_improvement"])
-            # Of the effects not significantly worse than the best, the one with the fewest parameters.
-            tied = [item for item in passing if item[0]["ci95"][1] >= best[0]["val_improvement"]]
+            # The effects the val data cannot tell from the best: paired against it, trajectory by trajectory.
+            tied = [
+                item
+                for item in passing
+                if item is best
+                or bootstrap_ratio(best[3], item[3], self.budget.bootstrap, self.rng, self.decision.confidence)[1][1]
+                >= 0
+            ]
             chosen = min(tied, key=lambda item: (len(item[1].parameters), -item[0]["val_improvement"]))
+            rivals = [item[0]["name"] for item in tied if not _nested(item[1], chosen[1])]
+            if len(rivals) > 1:  # not one effect inside another (air_drag in wind): the data cannot say which
+                for item in tied:
+                    item[0]["confounded_with"] = [name for name in rivals if name != item[0]["name"]]
+                self.confounded = sorted(rivals) if not current.effects else self.confounded
+                break
             chosen[0]["chosen"] = True
             _, current, values, _, _ = chosen
             # Converge the chosen model before the next round, so that a further effect must explain what this one
             # cannot, not merely let the base parameters move on (every refit alone gained ~3% on the real cube).
             values, current_train = self.train_fit.least_squares(current, values, self.budget.lsq_iterations)
             current_val = self.val_losses(current, values)
+        if len(current.effects) > 1:
+            current, values = self.drop_passengers(current, values, current_val, base_val, records)
         self.timings["naming_s"] = time.perf_counter() - started
         return current, values, records
+
+    def drop_passengers(
+        self, current: Hypothesis, values: np.ndarray, current_val: np.ndarray, base_val: np.ndarray, records: list
+    ) -> tuple[Hypothesis, np.ndarray]:
+        """Each effect must pass the rule given the others: refit without it, and drop it if the model with it is not
+        significantly better on val by the margin (a passenger that rode in on the first effect's model-form error)."""
+        for effect in current.effects:
+            others = Hypothesis(current.n_bodies, tuple(e for e in current.effects if e is not effect))
+            other_values, _ = self.train_fit.least_squares(
+                others, others.start(current, values), self.budget.lsq_iterations
+            )
+            other_val = self.val_losses(others, other_values)
+            improvement, ci = bootstrap_ratio(
+                other_val, current_val, self.budget.bootstrap, self.rng, self.decision.confidence
+            )
+            closes = float((other_val.mean() - current_val.mean()) / base_val.mean())
+            kept = bool(ci[0] > 0 and closes >= self.decision.margin)
+            self.given_the_others.append(
+                {
+                    "name": effect.name,
+                    "val_improvement": improvement,
+                    "ci95": ci,
+                    "closes_of_base_loss": closes,
+                    "passes": kept,
+                }
+            )
+            log.info("  %s given the others: %.3f [%.3f, %.3f] -> %s", effect.name, improvement, *ci, kept)
+            if not kept:
+                for record in records:
+                    if record["name"] == effect.name and record.get("chosen"):
+                        record["chosen"], record["dropped_as_passenger"] = False, True
+                return others, other_values
+        return current, values
+
+    # ---------------------------------------------------------------- open world
+
+    def explain_open_world(self, hypothesis: Hypothesis, values: np.ndarray) -> dict:
+        """The sparse phase-gated correction (diagnosis.open_world) fitted on train, judged on val like an effect,
+        and checked once on the test split's segments."""
+        started = time.perf_counter()
+        valid = self.train_split.valid_mask()
+        origin = self.train_split.poses[..., :2][valid].reshape(-1, 2).mean(axis=0)
+        train = self._open_world_inputs(self.train_fit, self.train_split, hypothesis, values, origin)
+        correction = open_world.fit_correction(
+            train["dictionary"], train["residuals"], self.train_fit.scale, self.budget.open_world_terms, train["usable"]
+        )
+        record: dict = {"terms": correction.described(), "passes": False}
+        if correction.terms:
+            val = self._open_world_inputs(self.val_fit, self.val_split, hypothesis, values, origin)
+            before, after = self._open_world_losses(self.val_fit, val, correction, self.val_split.n_trajectories)
+            improvement, ci = bootstrap_ratio(before, after, self.budget.bootstrap, self.rng, self.decision.confidence)
+            n_residuals = 6 * self.train_fit.entries
+            train_before, train_after = (
+                float(losses.mean())
+                for losses in self._open_world_losses(
+                    self.train_fit, train, correction, self.train_split.n_trajectories
+                )
+            )
+            delta_bic = n_residuals * np.log(train_after / train_before) + len(correction.terms) * np.log(n_residuals)
+            record.update(
+                {
+                    "val_improvement": improvement,
+                    "ci95": ci,
+                    "delta_bic": float(delta_bic),
+                    "passes": bool(ci[0] > 0 and improvement >= self.decision.margin and delta_bic < 0),
+                    "located": self._open_world_location(val, correction),
+                }
+            )
+            if record["passes"]:
+                test_split = self.dataset.split("test")
+                test_fit = ResidualFit(
+                    SegmentSimulator(self.dataset, cut_segments(self.dataset, test_split, self.budget.segment_frames)),
+                    scale=self.train_fit.scale,
+                )
+                test = self._open_world_inputs(test_fit, test_split, hypothesis, values, origin)
+                before, after = self._open_world_losses(test_fit, test, correction, test_split.n_trajectories)
+                held, held_ci = bootstrap_ratio(before, after, self.budget.bootstrap, self.rng)
+                record["heldout"] = {
+                    "split": "test",
+                    "what": "short-horizon segments (the correction is not a MuJoCo model, so no full rollouts)",
+                    "n_trajectories": int(test_split.n_trajectories),
+                    "improvement": held,
+                    "ci95": held_ci,
+                    "confirmed": held_ci[0] > 0,
+                }
+        log.info(
+            "open world: %d terms, %s",
+            len(correction.terms),
+            "passes" if record["passes"] else "does not pass",
+        )
+        self.timings["open_world_s"] = time.perf_counter() - started
+        return record
+
+    def _open_world_inputs(self, fit: ResidualFit, split, hypothesis: Hypothesis, values: np.ndarray, origin) -> dict:
+        segments = fit.simulator.segments
+        residuals = fit.residuals(hypothesis, values[None])[0]
+        features, phases = open_world.recorded_states(self.dataset, split, segments, origin)
+        return {
+            "residuals": residuals,
+            "usable": (np.abs(residuals) < UNSTABLE_RESIDUAL).all(axis=(1, 2, 3)),
+            "dictionary": open_world.integrate(features, phases, self.dataset.dt, self.dataset.widths()),
+            "phases": segments.phase,
+        }
+
+    @staticmethod
+    def _open_world_losses(fit: ResidualFit, inputs: dict, correction, n_trajectories: int):
+        """Per-trajectory robust loss of the base residuals and of the corrected ones."""
+        residuals = inputs["residuals"]
+        after = open_world.corrected(residuals, correction, inputs["dictionary"])
+        return (
+            fit.simulator.trajectory_losses(fit.robust(residuals), n_trajectories),
+            fit.simulator.trajectory_losses(fit.robust(after), n_trajectories),
+        )
+
+    def _open_world_location(self, inputs: dict, correction) -> dict:
+        """Where the correction closes the val loss: the share its terms of each phase close alone, and the share of
+        the closing per output component."""
+        residuals = inputs["residuals"]
+        usable = inputs["usable"][:, None, None, None]
+
+        def gain(part) -> np.ndarray:  # [M, L, K, 6] loss closed by a correction
+            after = open_world.corrected(residuals, part, inputs["dictionary"])
+            return np.where(usable, self.val_fit.robust(residuals) - self.val_fit.robust(after), 0.0)
+
+        by_phase = np.array([gain(correction.restricted(p)).sum() for p in range(len(PHASES))])
+        by_output = gain(correction).sum(axis=(0, 1, 2))
+        return {
+            "phase_shares": {p: float(by_phase[i] / max(by_phase.sum(), 1e-300)) for i, p in enumerate(PHASES)},
+            "output_shares": {
+                o: float(by_output[i] / max(by_output.sum(), 1e-300)) for i, o in enumerate(open_world.OUTPUTS)
+            },
+            "phase": PHASES[int(np.argmax(by_phase))],
+            "output": open_world.OUTPUTS[int(np.argmax(by_output))],
+        }
 
     # ---------------------------------------------------------------- proof
 
@@ -290,6 +448,22 @@ class Diagnosis:
             "pos_err": score.metrics.per_trajectory["pos_err"],
             "rot_err_rad": score.metrics.per_trajectory["rot_err_rad"],
         }
+
+
+def _verdict(effects: list, confounded: list[str], unexplained: dict | None, confirmed: bool) -> str:
+    """effect (named, and the held-out test confirms it), unconfirmed (named on val, not confirmed on test),
+    confounded (two effects the data cannot tell apart), unexplained (only the open-world correction passes), none."""
+    if effects:
+        return "effect" if confirmed else "unconfirmed"
+    if confounded:
+        return "confounded"
+    return "unexplained" if unexplained and unexplained["passes"] else "none"
+
+
+def _nested(hypothesis: Hypothesis, chosen: Hypothesis) -> bool:
+    """Whether one hypothesis' last effect is a special case of the other's (air_drag is wind without wind)."""
+    pair = {hypothesis.effects[-1].name, chosen.effects[-1].name}
+    return len(pair) == 1 or pair == {"air_drag", "wind"}
 
 
 def run_diagnosis(
@@ -308,6 +482,7 @@ def run_diagnosis(
     base, base_values = steps.fit_base()
     located = steps.locate(base, base_values)
     final, final_values, candidates = steps.name_effects(base, base_values)
+    unexplained = None if final.effects or steps.confounded else steps.explain_open_world(base, base_values)
     before = steps.heldout(base, base_values)
     after = steps.heldout(final, final_values) if final.effects else before
     improvement, ci = bootstrap_ratio(before["pos_err"], after["pos_err"], budget.bootstrap, steps.rng)
@@ -326,8 +501,11 @@ def run_diagnosis(
             }
         )
     document = {
-        "verdict": "effect" if effects else "none",
+        "verdict": _verdict(effects, steps.confounded, unexplained, confirmed=ci[0] > 0),
         "effects": effects,
+        "confounded": steps.confounded,
+        "given_the_others": steps.given_the_others,
+        "open_world": unexplained,
         "free_flight": falling,
         "base_parameters": base.reported(base_values)["base"],
         "final_base_parameters": final.reported(final_values)["base"],

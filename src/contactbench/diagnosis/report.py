@@ -46,6 +46,13 @@ def budget_sentence(document: dict) -> str:
 
 def summary_sentence(document: dict) -> str:
     text = _verdict_sentence(document)
+    falling = document.get("free_flight") or {}
+    if document["verdict"] in ("none", "unconfirmed") and falling.get("confirmed"):
+        text += (
+            " Nothing the simulator models is confirmed on the held-out tosses; the one confirmed finding is "
+            f"model-free: bodies in free flight fall at {falling['splits']['test']['along_gravity']:.3f} m/s² on "
+            f"test (train {falling['scale']:.4f} × meta.gravity; see the free-flight section)."
+        )
     if not document.get("conclusive", True):
         text = f"At budget={document.get('budget_name')} (not conclusive): {text}"
     return text
@@ -54,6 +61,19 @@ def summary_sentence(document: dict) -> str:
 def _verdict_sentence(document: dict) -> str:
     held = document["heldout"]
     where = document["located"]["where"]
+    if document["verdict"] == "confounded":
+        rivals = [c for c in document["candidates"] if c.get("confounded_with") is not None]
+        listed = "; ".join(
+            f"{c['name']} closes {c['val_improvement']:.1%} (95% CI {c['ci95'][0]:.1%} to {c['ci95'][1]:.1%})"
+            for c in rivals
+        )
+        return (
+            f"Confounded: {' or '.join(document['confounded'])}. Each passes the rule on val, and paired trajectory "
+            f"by trajectory neither is significantly better than the other ({listed}): these recordings cannot tell "
+            "which is missing, so none is named."
+        )
+    if document["verdict"] == "unexplained":
+        return _unexplained_sentence(document["open_world"])
     if document["verdict"] == "none":
         return (
             f"No candidate effect improved the fit significantly and by the margin; the remaining mismatch lives in "
@@ -73,6 +93,43 @@ def _verdict_sentence(document: dict) -> str:
         f"Missing: {names}; modelling it changed the {held_text}; what remains lives in "
         f"{document['located_after']['where']}."
     )
+
+
+def _unexplained_sentence(found: dict) -> str:
+    located, held = found["located"], found["heldout"]
+    phase_share = located["phase_shares"][located["phase"]]
+    return (
+        f"Something the library does not list is missing: no effect passed, but a sparse correction of "
+        f"{len(found['terms'])} terms closes {found['val_improvement']:.1%} of the val loss (95% CI "
+        f"{found['ci95'][0]:.1%} to {found['ci95'][1]:.1%}); {phase_share:.0%} of that in {located['phase']} frames, "
+        f"mostly in {located['output']}; on held-out test segments it closes {held['improvement']:.1%} (95% CI "
+        f"{held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}){'' if held['confirmed'] else ', not confirmed'}. "
+        "See the open-world terms for what it depends on."
+    )
+
+
+def _open_world_lines(found: dict | None) -> list[str]:
+    if not found:
+        return []
+    lines = [
+        "## Open world (a sparse correction outside the library)",
+        "",
+        "Generalized accelerations of each body, world frame, gated to one contact phase and proportional to one "
+        "candidate dependence (diagnosis.open_world); fitted on train, judged on val by the same rule.",
+        "",
+    ]
+    if not found["terms"]:
+        return lines + ["No term improved the train BIC.", ""]
+    lines += [
+        f"Val: closes {found['val_improvement']:.1%} (95% CI {found['ci95'][0]:.1%} to {found['ci95'][1]:.1%}), "
+        f"dBIC {found['delta_bic']:.0f}: {'passes' if found['passes'] else 'does not pass'}.",
+        "",
+        "| output | phase | depends on | coefficient |",
+        "|---|---|---|---|",
+        *[f"| {t['output']} | {t['phase']} | {t['depends_on']} | {t['coefficient']:.4g} |" for t in found["terms"]],
+        "",
+    ]
+    return lines
 
 
 def _markdown(document: dict, figures: list[Path]) -> str:
@@ -110,6 +167,11 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         for e in document["effects"]
     ] or ["- none"]
     lines += [
+        f"- `{g['name']}` given the others: improvement {g['val_improvement']:.3f} (95% CI {g['ci95'][0]:.3f} to "
+        f"{g['ci95'][1]:.3f}), {'kept' if g['passes'] else 'dropped as a passenger'}"
+        for g in document.get("given_the_others", [])
+    ]
+    lines += [
         "",
         "## Candidates (val)",
         "",
@@ -125,6 +187,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{c['closes_of_base_loss']:.3f} | "
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''} |"
         )
+    lines += ["", *_open_world_lines(document.get("open_world"))]
     located = document["located"]
     lines += [
         "",

@@ -21,8 +21,16 @@ SWEEPS = {
 PANELS = [
     ("pos_err", "position error (widths)"),
     ("rot_err_rad", "rotation error (rad)"),
-    ("floor_penetration_m", "floor penetration (m)"),
+    ("floor_penetration_m", "floor penetration (mm)"),
 ]
+# Metrics stored in m, drawn in mm (as the results table shows them).
+MILLIMETRES = {"floor_penetration_m", "interbody_penetration_m", "min_vertex_height_m"}
+
+
+def _unit(key: str) -> float:
+    return 1e3 if key in MILLIMETRES else 1.0
+
+
 # Table 3's rule: a dimension matters for a method when its mean test position error moves by more than this
 # fraction of its smallest value across the dimension's variants.
 IMPORTANCE_THRESHOLD = 0.25
@@ -71,9 +79,10 @@ def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
     for axis, (key, label) in zip(axes, PANELS):
         for model, group in grouped.items():
             x = [run.value for run in group]
-            axis.plot(x, [run.summary[key] for run in group], marker="o", label=model)
-            low, high = zip(*(np.nanpercentile(run.per_trajectory[key], [25, 75]) for run in group))
-            axis.fill_between(x, low, high, alpha=0.15)
+            (line,) = axis.plot(x, [run.summary[key] * _unit(key) for run in group], marker="o", label=model)
+            low, high = zip(*(np.nanpercentile(run.per_trajectory[key], [25, 75]) * _unit(key) for run in group))
+            axis.fill_between(x, low, high, alpha=0.15, color=line.get_color())
+        axis.grid(True, alpha=0.3)
         axis.set_xlabel(parameter)
         axis.set_ylabel(label)
     axes[0].legend(fontsize=8)
@@ -93,12 +102,48 @@ def per_frame_figure(
     axis = figure.subplots()
     for run in sorted(chosen, key=lambda r: (r.summary["model"], r.value)):
         curve = np.array([np.nan if v is None else v for v in run.summary["per_frame"][key]], dtype=float)
-        axis.plot(curve, label=f"{run.summary['model']} {run.summary['variant']}")
+        axis.plot(curve * _unit(key), label=f"{run.summary['model']} {run.summary['variant']}")
     axis.set_xlabel("frame")
     axis.set_ylabel(label)
     axis.legend(fontsize=7)
     axis.set_title(title)
     return save_figure(figure, path)
+
+
+def error_over_time_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
+    """Position and rotation error against the frame, one column per variant, a line per method (test split)."""
+    chosen = [run for run in runs if run.summary["dataset"] == dataset]
+    if not chosen:
+        return None
+    variants = sorted({run.summary["variant"] for run in chosen}, key=_variant_order)
+    figure = new_figure(figsize=(3.2 * len(variants) + 1.0, 5.6))
+    axes = figure.subplots(2, len(variants), squeeze=False, sharey="row")
+    colours = {model: f"C{i}" for i, model in enumerate(sorted({run.summary["model"] for run in chosen}))}
+    for column, variant in enumerate(variants):
+        for run in sorted(chosen, key=lambda r: r.summary["model"]):
+            if run.summary["variant"] != variant:
+                continue
+            frames = run.summary["per_frame"]
+            for row, key in enumerate(("pos_err", "rot_err_rad")):
+                curve = np.array([np.nan if v is None else v for v in frames[key]], dtype=float)
+                axes[row, column].plot(curve, color=colours[run.summary["model"]], label=run.summary["model"])
+        axes[0, column].set_title(variant, fontsize=9)
+        axes[1, column].set_xlabel("frame")
+        for axis in axes[:, column]:
+            axis.grid(True, alpha=0.3)
+    axes[0, 0].set_ylabel("position error (widths)")
+    axes[1, 0].set_ylabel("rotation error (rad)")
+    axes[0, -1].legend(fontsize=7)
+    figure.suptitle(f"Error over time, {dataset} (test; mean over the tosses still running at each frame)")
+    return save_figure(figure, path)
+
+
+def _variant_order(variant: str) -> tuple:
+    """Variants by their value ('friction=0.25' before 'friction=1'); names without a number after them."""
+    try:
+        return (0, float(variant.split("=", 1)[1]), variant)
+    except (IndexError, ValueError):
+        return (1, 0.0, variant)
 
 
 def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
@@ -142,18 +187,20 @@ def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str,
             runs,
             "multicubes",
             "interbody_penetration_m",
-            "max inter-body penetration (m)",
+            "max inter-body penetration (mm)",
             "Fig. 7a: inter-body penetration",
             out_dir / "fig7a_interbody_penetration.png",
         )
     )
     drawn.append(pairwise_collisions_figure(runs, out_dir / "fig7b_pairwise_collisions.png"))
+    for dataset in sorted({run.summary["dataset"] for run in runs}):
+        drawn.append(error_over_time_figure(runs, dataset, out_dir / f"error_over_time_{dataset}.png"))
     drawn.append(
         per_frame_figure(
             runs,
             "frictioncubes",
             "min_vertex_height_m",
-            "lowest vertex height (m)",
+            "lowest vertex height (mm)",
             "Fig. 7c: lowest vertex height, mu = 0 and 1",
             out_dir / "fig7c_lowest_vertex.png",
             values=[0.0, 1.0],
@@ -171,12 +218,13 @@ def new_figure(**kwargs) -> Figure:
 
 
 def save_figure(figure: Figure, path: Path) -> Path:
-    """Write a figure atomically."""
+    """Write a figure atomically, as PNG (path) and as SVG beside it (for papers)."""
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.partial.png")
-    figure.savefig(partial, dpi=110)
-    partial.replace(path)
+    for target in (path, path.with_suffix(".svg")):
+        partial = target.with_name(f".{target.name}.partial{target.suffix}")
+        figure.savefig(partial, dpi=110, metadata={"Date": None} if target.suffix == ".svg" else None)
+        partial.replace(target)
     return path
 
 

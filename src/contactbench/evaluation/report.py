@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import base64
 import html
 import json
 from pathlib import Path
@@ -53,14 +54,52 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def grid_markdown(rows: list[dict]) -> str:
+    """The model x dataset grid: test position / rotation error per variant and model, val position beside it."""
+    models = sorted({row["model"] for row in rows})
+    cells: dict[tuple[str, str], dict[str, dict[str, dict]]] = {}
+    for row in rows:
+        cells.setdefault((row["dataset"], row["variant"]), {}).setdefault(row["model"], {})[row["split"]] = row
+    lines = [
+        "| dataset | variant | " + " | ".join(models) + " |",
+        "|---|---|" + "---|" * len(models),
+    ]
+    for (dataset, variant), by_model in sorted(cells.items(), key=lambda item: (item[0][0], _variant_key(item[0][1]))):
+        entries = []
+        for model in models:
+            splits = by_model.get(model, {})
+            test, val = splits.get("test"), splits.get("val")
+            text = f"{test['pos_err']:.3f} / {test['rot_err_rad']:.3f}" if test else "–"
+            if val:
+                text += f" (val {val['pos_err']:.3f})"
+            entries.append(text)
+        lines.append(f"| {dataset} | {variant} | " + " | ".join(entries) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _variant_key(variant: str) -> tuple:
+    try:
+        return (0, float(variant.split("=", 1)[1]))
+    except (IndexError, ValueError):
+        return (1, 0.0)
+
+
 def importance_markdown(table: dict[str, dict[str, str]]) -> str:
+    """Table 3 over the dimensions that have at least two variants in these runs; says what the others need."""
     dimensions = [parameter for parameter, _ in SWEEPS.values()]
-    lines = ["| method | " + " | ".join(dimensions) + " |", "|" + "---|" * (len(dimensions) + 1)]
+    measured = [d for d in dimensions if any(verdicts.get(d, "N/A") != "N/A" for verdicts in table.values())]
+    missing = [f"{dataset} ({parameter})" for dataset, (parameter, _) in SWEEPS.items() if parameter not in measured]
+    note = (
+        f"Not measured here (needs test runs on at least two variants of): {', '.join(missing)}.\n" if missing else ""
+    )
+    if not measured:
+        return note
+    lines = ["| method | " + " | ".join(measured) + " |", "|" + "---|" * (len(measured) + 1)]
     lines += [
-        f"| {model} | " + " | ".join(verdicts.get(d, "N/A") for d in dimensions) + " |"
+        f"| {model} | " + " | ".join(verdicts.get(d, "N/A") for d in measured) + " |"
         for model, verdicts in sorted(table.items())
     ]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n\n" + note
 
 
 def write_report(root: Path, renders: bool = True) -> Path:
@@ -74,7 +113,8 @@ def write_report(root: Path, renders: bool = True) -> Path:
     rendered = render_report(root, root / "renders") if renders else []
     sections = [
         f"# Results under {root}\n\nEvery metrics.json below this folder ({len(rows)}); figures from the test split.\n",
-        markdown_table(rows),
+        "## Test position error (widths) / rotation error (rad), val position error beside\n",
+        grid_markdown(rows),
         "## Figures\n",
         *[f"![{path.stem}](figures/{path.name})\n" for path in figures],
         "## Table 3, recomputed\n",
@@ -83,19 +123,33 @@ def write_report(root: Path, renders: bool = True) -> Path:
         importance_markdown(importance),
         "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
         *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
+        "## Every run\n",
+        markdown_table(rows),
     ]
     markdown = "\n".join(sections)
     atomic.write_text(root / "results.md", markdown)
-    atomic.write_text(root / "results.html", _html(markdown))
+    atomic.write_text(root / "results.html", _html(markdown, root))
     return root / "results.md"
 
 
-def _html(markdown: str) -> str:
-    """A plain HTML rendering of the report's Markdown (headings, tables, images, paragraphs)."""
+STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1200px; margin: 2em auto; padding: 0 1em; color: #222; }
+h1, h2 { border-bottom: 1px solid #ddd; padding-bottom: .2em; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 13px; }
+th, td { border: 1px solid #ccc; padding: 4px 8px; text-align: right; white-space: nowrap; }
+td:first-child, td:nth-child(2), th { text-align: left; }
+tr:first-child td { background: #f0f0f0; font-weight: 600; }
+tr:nth-child(even) td { background: #fafafa; }
+img { max-width: 100%; border: 1px solid #eee; margin: .5em 0; }
+"""
+
+
+def _html(markdown: str, root: Path) -> str:
+    """One self-contained, styled HTML file of the report's Markdown: images embedded as data URIs."""
     body, in_table = [], False
     for line in markdown.split("\n"):
         if line.startswith("|") and not in_table:
-            body.append("<table border=1 cellspacing=0>")
+            body.append("<table>")
             in_table = True
         elif not line.startswith("|") and in_table:
             body.append("</table>")
@@ -112,16 +166,22 @@ def _html(markdown: str) -> str:
             level = len(line) - len(line.lstrip("#"))
             body.append(f"<h{level}>{html.escape(line.lstrip('# '))}</h{level}>")
         elif line.startswith("!["):
-            body.append(
-                f'<p><img src="{html.escape(line[line.index("(") + 1 : line.index(")")])}" style="max-width:100%"></p>'
-            )
+            body.append(f'<p><img src="{_embedded(root / line[line.index("(") + 1 : line.index(")")])}"></p>')
         elif line.strip():
             body.append(f"<p>{html.escape(line)}</p>")
     if in_table:
         body.append("</table>")
     text = "\n".join(body)
-    head = "<!doctype html>\n<html><head><meta charset='utf-8'><title>contactbench results</title></head><body>"
+    head = (
+        "<!doctype html>\n<html><head><meta charset='utf-8'><title>contactbench results</title>"
+        f"<style>{STYLE}</style></head><body>"
+    )
     return f"{head}\n{text}\n</body></html>\n"
+
+
+def _embedded(path: Path) -> str:
+    kind = {".png": "image/png", ".gif": "image/gif", ".svg": "image/svg+xml"}.get(path.suffix, "image/png")
+    return f"data:{kind};base64,{base64.b64encode(path.read_bytes()).decode('ascii')}"
 
 
 def main() -> None:

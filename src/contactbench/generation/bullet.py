@@ -207,7 +207,7 @@ class BulletScene:
         readings = []
         record = readings.append
         contact_log: list[tuple[int, tuple]] = []
-        drag = self._apply_drag if self.effects.drag else None
+        drag = self._apply_forces if self.effects.applied_forces else None
         for t in range(frames):
             if t:
                 step(client)
@@ -228,15 +228,25 @@ class BulletScene:
             states = self._mesh_frame_states(states)
         return states, contacts
 
-    def _apply_drag(self, latest: list[tuple]) -> None:
-        """Fluid force and torque for the next step (see __init__), at each centre of mass."""
-        wind = np.array(self.effects.wind)
+    def _apply_forces(self, latest: list[tuple]) -> None:
+        """Fluid force and torque (see __init__) and the outside-library accelerations for the next step, at each
+        centre of mass."""
+        effects = self.effects
+        wind = np.array(effects.wind)
         for body, (pose, velocity) in zip(self.bodies, zip(latest[::2], latest[1::2])):
             rotation = rotations.to_matrix(rotations.xyzw_to_wxyz(np.array(pose[1])))
-            relative = rotation.T @ (np.array(velocity[0]) - wind)
-            spin = rotation.T @ np.array(velocity[1])
+            linear, angular = np.array(velocity[0]), np.array(velocity[1])
+            relative = rotation.T @ (linear - wind)
+            spin = rotation.T @ angular
             force = rotation @ (-self.drag_force * np.abs(relative) * relative)
             torque = rotation @ (-self.drag_torque * np.abs(spin) * spin)
+            acceleration = -2 * effects.coriolis * np.cross([0.0, 0.0, 1.0], linear)
+            if (effects.floor_viscosity or effects.floor_centring) and pybullet.getContactPoints(
+                body, self.floor, physicsClientId=self.client
+            ):
+                place = np.array(pose[0][:2])
+                acceleration[:2] -= effects.floor_viscosity * linear[:2] + effects.floor_centring * place
+            force = force + self.settings.mass * acceleration
             pybullet.applyExternalForce(
                 body, -1, force.tolist(), pose[0], pybullet.WORLD_FRAME, physicsClientId=self.client
             )

@@ -20,6 +20,9 @@ EFFECT_NAMES = (
     "floor_tilt",
     "gravity_scale",
 )
+# Physics PyBullet can switch on that the diagnosis library does not list (no MuJoCo model of them there): they
+# test whether diagnose.py says `unexplained` instead of a wrong name or `none`.
+OUTSIDE_LIBRARY = ("coriolis", "floor_viscosity", "floor_centring")
 # Strength 1 of each effect. The tosses are short and slow (about 1 m/s, 0.15 s of flight, then sliding), so
 # the fluid is dense: at 60 kg/m^3 drag decelerates a sliding cube by about 1 m/s^2 against friction's ~5.
 # Rolling and spinning friction start at 0.01 m: at 0.005 m the first blind proof missed both (their short-horizon
@@ -43,6 +46,10 @@ class ConcealedEffects:
     # PyBullet's gravity / the recorded meta.gravity: what a tracker whose time base or length scale is off shows
     # (the real ContactNets cube falls at 0.978 g in free flight).
     gravity_scale: float = 1.0
+    # Outside the library (OUTSIDE_LIBRARY), each an acceleration of every body's centre of mass:
+    coriolis: float = 0.0  # rad/s: in any phase, -2 coriolis z x v: the recordings' frame turns about the vertical
+    floor_viscosity: float = 0.0  # 1/s: while touching the floor, -floor_viscosity * (v_x, v_y): a viscous floor
+    floor_centring: float = 0.0  # 1/s^2: while touching the floor, -floor_centring * (x, y): a floor bowl
 
     def __post_init__(self):
         freeze_numbers(self, vectors=("wind", "floor_friction_scale", "com_offset", "inertia_scale", "floor_tilt"))
@@ -50,9 +57,10 @@ class ConcealedEffects:
     @classmethod
     def named(cls, names, strength: float = 1.0) -> ConcealedEffects:
         """The effects `names` (from EFFECT_NAMES) at `strength` times their reference size."""
-        unknown = [name for name in names if name not in EFFECT_NAMES]
+        unknown = [name for name in names if name not in EFFECT_NAMES + OUTSIDE_LIBRARY]
         if unknown:
-            raise ContactbenchError(f"effects: unknown effect {unknown[0]!r}; known: {', '.join(EFFECT_NAMES)}")
+            known = ", ".join(EFFECT_NAMES + OUTSIDE_LIBRARY)
+            raise ContactbenchError(f"effects: unknown effect {unknown[0]!r}; known: {known}")
         if not strength > 0:
             raise ContactbenchError(f"effect_strength must be positive, got {strength}")
         s = float(strength)
@@ -79,6 +87,12 @@ class ConcealedEffects:
                 settings["floor_tilt"] = (0.025 * s, -0.012 * s)
             elif name == "gravity_scale":  # weaker, as the real cube's; 1 / (1 + 0.05 s) stays positive at any strength
                 settings["gravity_scale"] = 1.0 / (1.0 + 0.05 * s)
+            elif name == "coriolis":  # 1.5 m/s^2 sideways at 1 m/s
+                settings["coriolis"] = 0.75 * s
+            elif name == "floor_viscosity":  # 1.5 m/s^2 at 1 m/s of sliding, against friction's ~5
+                settings["floor_viscosity"] = 1.5 * s
+            elif name == "floor_centring":  # ~1 m/s^2 a fifth of a metre from the floor's origin
+                settings["floor_centring"] = 5.0 * s
         return cls(**settings)
 
     def truth(self, names) -> list[dict]:
@@ -98,12 +112,16 @@ class ConcealedEffects:
             "floor_offset": {"floor_offset": self.floor_offset},
             "floor_tilt": {"floor_tilt_x": self.floor_tilt[0], "floor_tilt_y": self.floor_tilt[1]},
             "gravity_scale": {"gravity_scale": self.gravity_scale},
+            "coriolis": {"coriolis": self.coriolis},
+            "floor_viscosity": {"floor_viscosity": self.floor_viscosity},
+            "floor_centring": {"floor_centring": self.floor_centring},
         }
         return [{"name": name, "parameters": values[name]} for name in names]
 
     @property
-    def drag(self) -> bool:
-        return self.fluid_density > 0
+    def applied_forces(self) -> bool:
+        """Whether forces must be applied before every engine step (drag or an outside-library effect)."""
+        return self.fluid_density > 0 or bool(self.coriolis or self.floor_viscosity or self.floor_centring)
 
 
 NONE = ConcealedEffects()

@@ -62,3 +62,22 @@ class ContactModel(ABC):
 
         `dataset` supplies the scene only (meta: dt, gravity, floor; meshes); a model must not read its splits here.
         """
+
+    def fitted_state(self) -> dict:
+        """What `fit` learned, as JSON numbers, strings and lists of them: train.py writes it to the run folder's
+        fitted.json (never a pickle) and evaluate.py gives it back through `load_fitted_state`. Lightning models keep
+        theirs in checkpoints instead."""
+        return {}
+
+    def load_fitted_state(self, state: dict) -> None:
+        """Become the model `fitted_state` described (override both, or neither)."""
+        if state:
+            raise ContactbenchError(
+                f"model {self.name!r} does not load a fitted state, yet its run folder holds one "
+                f"({', '.join(sorted(state))}): implement load_fitted_state beside fitted_state"
+            )
+
+    @property
+    def learns(self) -> bool:
+        """Whether this model's class fits anything (overrides `fit`)."""
+        return type(self).fit is not ContactModel.fit

@@ -236,9 +236,12 @@ class GNNModule(pl.LightningModule):
     def on_validation_epoch_start(self) -> None:
         if hasattr(self, "_clock"):
             self._clock["validation_started"] = time.perf_counter()
+        # Rolled out here, not at epoch end: a weight-averaging callback swaps its average in before this hook and
+        # back out before the module's epoch end, and the average is what the checkpoint keeps.
+        self._rollout_errors = self.validation_rollout_errors()
 
     def on_validation_epoch_end(self) -> None:
-        errors = self.validation_rollout_errors()
+        errors = self._rollout_errors
         self.log("val/rollout_pos_err", errors["pos_err"], prog_bar=True)
         self.log("val/rollout_rot_err", errors["rot_err"])
         if hasattr(self, "_clock"):  # training seconds in this process, validation excluded: learning curves' x-axis

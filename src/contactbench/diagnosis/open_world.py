@@ -1,0 +1,186 @@
+"""Physics nobody listed: a sparse, phase-gated force correction fitted to the short-horizon residuals (SINDy-style).
+
+When no library effect passes, the question left is whether the simulator and the recordings still disagree in a
+systematic way. The correction is a generalized acceleration per body, world frame,
+
+    a_c(x) = sum over chosen terms of  xi * [phase(x) = p] * theta_f(x)
+
+with theta from a dictionary of candidate dependences (constant, velocity, |v| v, spin, spin x velocity, height, place
+on the floor) and p one of the contact phases. Evaluated at the recorded states of a segment, it moves the simulated
+frame j by sum_{i<j} (j - i) dt^2 a_c(x_i): the corrected residual is linear in xi, so terms are chosen by forward
+selection on train (least squares weighted as the diagnosis' robust loss weighs the base residuals, stopped by BIC)
+and then judged like a library effect: significantly better on val (paired bootstrap), closing at least the margin
+of the base loss, better BIC on train. Impacts are outside the dictionary (see fit_correction). Contact feedback is
+left out (a correction that pushes a body into the floor moves it in the linearisation), so the correction says
+where and on what the mismatch depends, not what a MuJoCo model of it would be; its held-out check is on test
+segments, not full rollouts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from contactbench.diagnosis.phases import IMPACT, PHASES, label_phases, recorded_velocities
+from contactbench.diagnosis.segments import UNSTABLE_RESIDUAL, Segments
+from contactbench.recordings import Recordings, Split
+
+FEATURES = (
+    "1",
+    "v_x",
+    "v_y",
+    "v_z",
+    "|v|v_x",
+    "|v|v_y",
+    "|v|v_z",
+    "w_x",
+    "w_y",
+    "w_z",
+    "(w×v)_x",
+    "(w×v)_y",
+    "(w×v)_z",
+    "height",
+    "x",
+    "y",
+)
+OUTPUTS = ("linear_x", "linear_y", "linear_z", "angular_x", "angular_y", "angular_z")
+
+
+@dataclass(frozen=True)
+class Dictionary:
+    """The integrated candidate columns of one set of segments: G[m, j, k, p, f], the displacement of frame j+1
+    (in residual units: half-widths, rad) a unit acceleration theta_f gated to phase p would cause, per output kind."""
+
+    linear: np.ndarray  # [M, L, K, P, F] for the linear outputs (divided by the half width)
+    angular: np.ndarray  # [M, L, K, P, F] for the angular outputs (rad)
+
+    def column(self, output: int, phase: int, feature: int) -> np.ndarray:
+        """[M, L, K] displacement of output `output` per unit coefficient of the term."""
+        return (self.linear if output < 3 else self.angular)[..., phase, feature]
+
+
+def recorded_states(dataset: Recordings, split: Split, segments: Segments, origin: np.ndarray) -> tuple:
+    """Features [M, L, K, F] and phases [M, L, K] of the recorded states a segment passes through (frames start ..
+    start + L - 1)."""
+    frames = segments.start[:, None] + np.arange(segments.length)[None, :]
+    rows = segments.trajectory[:, None]
+    poses = split.poses[rows, frames]  # [M, L, K, 7]
+    velocities = recorded_velocities(split, dataset.dt)[rows, frames]
+    phases = label_phases(dataset, split)[rows, frames]
+    v, w = velocities[..., :3], velocities[..., 3:]
+    speed = np.linalg.norm(v, axis=-1, keepdims=True)
+    height = poses[..., 2:3] - dataset.floor_z
+    place = poses[..., :2] - origin
+    features = np.concatenate([np.ones_like(height), v, speed * v, w, np.cross(w, v), height, place], axis=-1)
+    return np.nan_to_num(features), phases
+
+
+def integrate(features: np.ndarray, phases: np.ndarray, dt: float, widths: np.ndarray) -> Dictionary:
+    """G_j = dt^2 sum_{i<j} (j - i) theta_i per phase: the displacement after j frames under accelerations theta_i."""
+    gated = features[..., None, :] * (phases[..., None, None] == np.arange(len(PHASES))[:, None])  # [M, L, K, P, F]
+    index = np.arange(features.shape[1], dtype=float)[None, :, None, None, None]
+    # frame j = 1..L: sums over i = 0..j-1
+    sums = np.cumsum(gated, axis=1)
+    weighted = np.cumsum(gated * index, axis=1)
+    j = index + 1
+    displacement = dt**2 * (j * sums - weighted)
+    return Dictionary(displacement / (widths[None, None, :, None, None] / 2), displacement)
+
+
+@dataclass
+class Correction:
+    """Chosen terms (output, phase, feature) and their coefficients (m/s^2 or rad/s^2 per unit of the feature)."""
+
+    terms: list[tuple[int, int, int]]
+    coefficients: np.ndarray
+
+    def displacement(self, dictionary: Dictionary) -> np.ndarray:
+        """[M, L, K, 6] the correction's change of each residual entry."""
+        shape = dictionary.linear.shape[:3]
+        out = np.zeros((*shape, 6))
+        for (output, phase, feature), xi in zip(self.terms, self.coefficients):
+            out[..., output] += xi * dictionary.column(output, phase, feature)
+        return out
+
+    def restricted(self, phase: int) -> Correction:
+        """The terms gated to one phase."""
+        keep = [i for i, term in enumerate(self.terms) if term[1] == phase]
+        return Correction([self.terms[i] for i in keep], self.coefficients[keep])
+
+    def described(self) -> list[dict]:
+        return [
+            {
+                "output": OUTPUTS[output],
+                "phase": PHASES[phase],
+                "depends_on": FEATURES[feature],
+                "coefficient": float(xi),
+            }
+            for (output, phase, feature), xi in zip(self.terms, self.coefficients)
+        ]
+
+
+def fit_correction(
+    dictionary: Dictionary,
+    residuals: np.ndarray,
+    robust_scale: float,
+    max_terms: int,
+    usable: np.ndarray,
+) -> Correction:
+    """Forward selection of terms on weighted least squares, stopped by BIC; weights from the robust loss.
+
+    residuals [M, L, K, 6]; usable [M] (segments whose base rollout did not blow up)."""
+    target = np.where(usable[:, None, None, None], -residuals, 0.0)
+    weights = np.where(usable[:, None, None, None], 1.0 / np.sqrt(1 + (residuals / robust_scale) ** 2), 0.0)
+    n_entries = int(usable.sum()) * int(np.prod(residuals.shape[1:]))
+    n_phases, n_features = dictionary.linear.shape[-2:]
+    # Impacts are left out: the engines' impact laws differ even with nothing concealed, and generic terms there
+    # "explain" that model-form error on every null dataset.
+    candidates = [(o, p, f) for o in range(6) for p in range(n_phases) if p != IMPACT for f in range(n_features)]
+    columns = {c: np.where(usable[:, None, None], dictionary.column(*c), 0.0) for c in candidates}
+    # a term that never acts (a phase nobody visits) cannot be chosen
+    candidates = [c for c in candidates if np.abs(columns[c]).max() > 0]
+    chosen: list[tuple[int, int, int]] = []
+    coefficients = np.zeros(0)
+    rss = float(np.sum(weights * target**2))
+    best_bic = n_entries * np.log(rss / n_entries)
+    while len(chosen) < max_terms:
+        # one output at a time is independent: score each candidate by the drop in its output's weighted RSS
+        best = None
+        for candidate in candidates:
+            if candidate in chosen:
+                continue
+            trial = chosen + [candidate]
+            xi, trial_rss = _solve(trial, columns, target, weights)
+            if best is None or trial_rss < best[2]:
+                best = (candidate, xi, trial_rss)
+        if best is None:
+            break
+        bic = n_entries * np.log(best[2] / n_entries) + (len(chosen) + 1) * np.log(n_entries)
+        if bic >= best_bic:
+            break
+        best_bic = bic
+        chosen.append(best[0])
+        coefficients = best[1]
+    return Correction(chosen, coefficients)
+
+
+def _solve(terms, columns, target, weights) -> tuple[np.ndarray, float]:
+    """Weighted least squares of the terms; terms of different outputs do not interact."""
+    coefficients = np.zeros(len(terms))
+    rss = float(np.sum(weights * target**2))
+    for output in {term[0] for term in terms}:
+        indices = [i for i, term in enumerate(terms) if term[0] == output]
+        w = weights[..., output].ravel()
+        design = np.stack([columns[terms[i]].ravel() for i in indices], axis=1) * np.sqrt(w)[:, None]
+        y = target[..., output].ravel() * np.sqrt(w)
+        xi, *_ = np.linalg.lstsq(design, y, rcond=None)
+        coefficients[indices] = xi
+        rss += float(np.sum((y - design @ xi) ** 2) - np.sum(y**2))
+    return coefficients, rss
+
+
+def corrected(residuals: np.ndarray, correction: Correction, dictionary: Dictionary) -> np.ndarray:
+    """Residuals with the correction applied; blown-up entries stay as they were."""
+    out = residuals + correction.displacement(dictionary)
+    return np.where(np.abs(residuals) >= UNSTABLE_RESIDUAL, residuals, out)
