@@ -12,7 +12,7 @@ import torch
 from conftest import falling_cubes
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
-from pytorch_lightning.callbacks import ModelCheckpoint
+from pytorch_lightning.callbacks import EMAWeightAveraging, ModelCheckpoint
 
 from contactbench import rotations
 from contactbench.config import CONFIG_DIR, REPO_ROOT
@@ -240,7 +240,8 @@ def test_free_flight_acceleration_is_measured_on_train_not_read_from_meta():
 
 
 def test_a_run_resumed_mid_epoch_trains_exactly_as_an_uninterrupted_one(tmp_path):
-    """Batches and training noise come from (seed, step): resuming from a mid-epoch checkpoint changes no weight."""
+    """Batches and training noise come from (seed, step): resuming from a mid-epoch checkpoint changes no weight, nor
+    the weights' moving average the run keeps."""
     recordings = falling_cubes(n_trajectories=6, n_frames=14)
     lowered = recordings.split("train").poses.copy()
     lowered[..., 2] = 0.04 + 0.001 * np.arange(14)[None, :, None]
@@ -257,7 +258,7 @@ def test_a_run_resumed_mid_epoch_trains_exactly_as_an_uninterrupted_one(tmp_path
             max_steps=max_steps,
             limit_val_batches=0,
             logger=False,
-            callbacks=list(callbacks),
+            callbacks=[*callbacks, EMAWeightAveraging(decay=0.9)],  # as conf/model/gnn.yaml: the average too
             enable_checkpointing=bool(callbacks),
             enable_progress_bar=False,
             enable_model_summary=False,
