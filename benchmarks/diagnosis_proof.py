@@ -14,7 +14,7 @@ shapes, no recorded velocities, two effects at once) were run only to report. Fo
 fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated without
 the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py                       # 39 cases, about 40 min on 2 cores
+    python benchmarks/diagnosis_proof.py                       # 40 cases, 45-90 min on 2 cores
     python benchmarks/diagnosis_proof.py --only floor_tilt      # the cases with floor_tilt
 """
 
