@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from contactbench.config import REPO_ROOT
-from contactbench.models.base import Context
 from contactbench.models.gnn.graph import build_edges
 from contactbench.models.gnn.module import GNNDataModule, GNNModule
+from contactbench.protocol import Context
 from contactbench.recordings import Recordings, Split, read_recordings
 
 SIDE_BY_SIDE_SPACING = 1.2  # widths between neighbouring cubes' origins

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytorch_lightning as pl
 import torch
 
-from contactbench.models.base import make_context
 from contactbench.models.hybrid import HybridDataModule, HybridModule
 from contactbench.models.hybrid.inverse import transitions_from_split
+from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 
 DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "assets" / "contactnets_cube"

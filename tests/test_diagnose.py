@@ -145,8 +145,10 @@ def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_grav
     verdict, document = diagnose(weak, tmp_path / "weak_out", tmp_path, SMALL)
     falling = document["free_flight"]
     assert falling["differs"] and falling["confirmed"] and falling["scale"] == pytest.approx(1 / 1.1, abs=3e-3)
-    assert verdict == "effect" and [e["name"] for e in document["effects"]] == ["gravity_scale"]
+    assert [e["name"] for e in document["effects"]] == ["gravity_scale"]
     assert document["effects"][0]["parameters"]["gravity_scale"] == pytest.approx(1 / 1.1, abs=0.01)
-    # (No held-out assertion: 20 test tosses of full rollouts through engine-specific impacts are too few to show it.)
+    # 20 test tosses of full rollouts through engine-specific impacts are too few to confirm it on held-out data; the
+    # verdict says which it was
+    assert verdict == ("effect" if document["heldout"]["confirmed"] else "unconfirmed")
     report = (tmp_path / "weak_out" / "report.md").read_text()
     assert "## First, model-free: free flight" in report and "confirmed on test" in report

@@ -15,12 +15,12 @@ from pytorch_lightning.callbacks import ModelCheckpoint
 from contactbench import rotations
 from contactbench.config import REPO_ROOT
 from contactbench.kinematics import world_vertices
-from contactbench.models.base import make_context
 from contactbench.models.gnn.graph import MeshScene, build_edges, collision_radius
 from contactbench.models.gnn.module import GNNDataModule, GNNModule, VertexWindows
 from contactbench.models.gnn.network import InteractionLayer
 from contactbench.models.gnn.shape_matching import fit_rigid_transform, poses_from_vertices, project_to_rigid
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator, random_walk_noise
+from contactbench.protocol import make_context
 from contactbench.recordings import Recordings, Split, read_recordings
 
 TINY = {"latent_size": 16, "message_passing_steps": 2}

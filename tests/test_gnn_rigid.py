@@ -16,11 +16,11 @@ from pytorch_lightning.callbacks import EMAWeightAveraging, ModelCheckpoint
 
 from contactbench import rotations
 from contactbench.config import CONFIG_DIR, REPO_ROOT
-from contactbench.models.base import make_context
 from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges, collision_radius
 from contactbench.models.gnn.module import GNNDataModule, GNNModule
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
+from contactbench.protocol import make_context
 from contactbench.recordings import Split, read_recordings
 from contactbench.tracking import ResumableCSVLogger, drop_rows_from_step
 

@@ -11,7 +11,6 @@ from conftest import cube_mesh, falling_cubes
 from pytorch_lightning.callbacks import EarlyStopping, ModelCheckpoint
 
 from contactbench import rotations
-from contactbench.models.base import make_context
 from contactbench.models.hybrid import (
     ContactSettings,
     HybridContactModel,
@@ -26,6 +25,7 @@ from contactbench.models.hybrid import (
 )
 from contactbench.models.hybrid.dynamics import State
 from contactbench.models.hybrid.module import training_arrays
+from contactbench.protocol import make_context
 from contactbench.recordings import FORMAT, VERSION, Recordings, Split
 
 MASS = 0.37

@@ -311,3 +311,13 @@ def test_scoring_protocol_rejects_bad_lengths():
         metrics.compute_metrics(true, pred, [6, 13], 2, [CUBE], 0.0)
     with pytest.raises(ValueError, match="2 meshes"):
         metrics.compute_metrics(true, pred, lengths, 2, [CUBE, CUBE], 0.0)
+
+
+def test_the_protocol_scores_frames_after_the_context_and_weighs_every_trajectory_once():
+    from contactbench.protocol import scored_frames, trajectory_means
+
+    scored = scored_frames(np.array([10, 7]), horizon=10, context_frames=6)
+    assert scored.sum(axis=1).tolist() == [4, 1] and not scored[:, :6].any() and not scored[1, 7:].any()
+    values = np.where(np.arange(10) < 8, 1.0, 3.0)[None, :].repeat(2, axis=0)  # frames 8, 9 of the long one cost 3
+    values[1, 7:] = np.nan  # past a trajectory's end nothing counts, whatever is there
+    np.testing.assert_allclose(trajectory_means(values, scored), [2.0, 1.0])

@@ -11,7 +11,7 @@ import pytest
 from contactbench import rotations
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
-from contactbench.models.base import make_context
+from contactbench.protocol import make_context
 from contactbench.recordings import Recordings, Split, read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters, build_model, pack_state, unpack_state
 from contactbench.sim.rollout import MujocoRollouts, mechanical_energy, rollout_context

@@ -11,10 +11,10 @@ import torch
 from test_pipeline import compose_config
 
 from contactbench.config import REPO_ROOT
-from contactbench.models.base import make_context
 from contactbench.models.sysid.module import stop_recast_threads
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import SearchSpace
+from contactbench.protocol import make_context
 from contactbench.recordings import Split, read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -23,11 +24,17 @@ def generations(evaluations: int, num_workers: int, restarts: int) -> int:
     return -(-int(evaluations) // int(num_workers)) * int(restarts)
 
 
+def interactive() -> bool:
+    """Progress bars only for a person at a terminal: not in CI, not when stderr goes to a file or a pipe."""
+    return sys.stderr.isatty() and not os.environ.get("CI")
+
+
 def register_resolvers() -> None:
     OmegaConf.register_new_resolver("cb.fmt", format_value, replace=True)
     OmegaConf.register_new_resolver("cb.root", lambda: str(REPO_ROOT), replace=True)
     OmegaConf.register_new_resolver("cb.basename", lambda path: Path(str(path)).name, replace=True)
     OmegaConf.register_new_resolver("cb.generations", generations, replace=True)
+    OmegaConf.register_new_resolver("cb.interactive", interactive, replace=True)
     OmegaConf.register_new_resolver("cb.wandb_offline", lambda: not os.environ.get("WANDB_API_KEY"), replace=True)
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
+from contactbench.protocol import scored_frames, trajectory_means
 
 # Two edges whose directions' cross product is shorter than this (the sine of their angle) are treated as parallel:
 # their cross product names no axis, and the faces of both bodies already cover that configuration.
@@ -315,15 +316,14 @@ def _scored_mask(
         raise ValueError(
             f"trajectory {short} has length {lengths[short]} <= start_frame {start_frame}: nothing to score"
         )
-    frames = np.arange(n_frames)
-    return (frames >= start_frame) & (frames < lengths[:, None])
+    return scored_frames(lengths, n_frames, start_frame)
 
 
 def _aggregate(values: np.ndarray, scored: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Per-frame curve [T], per-trajectory means [N] and their mean, of values [S] at the scored frames [N, T]."""
     placed = np.zeros(scored.shape)
     placed[scored] = values
-    per_trajectory = placed.sum(axis=1) / scored.sum(axis=1)
+    per_trajectory = trajectory_means(placed, scored)
     counts = scored.sum(axis=0)
     per_frame = np.full(scored.shape[1], np.nan)
     per_frame[counts > 0] = placed.sum(axis=0)[counts > 0] / counts[counts > 0]

@@ -14,6 +14,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig
 
 from contactbench import atomic, folders, settings, tracking
+from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
@@ -54,7 +55,7 @@ def generate(cfg: DictConfig) -> Path:
         except RecordingsError as error:
             log.warning("%s is not a valid dataset (%s); generating it again", path, error)
     spec = instantiate(cfg.dataset.scene)
-    return generate_dataset(
+    written = generate_dataset(
         spec,
         path,
         variant=variant,
@@ -64,7 +65,10 @@ def generate(cfg: DictConfig) -> Path:
         split_sizes=dict(cfg.generation.split_sizes),
         effects=effects,
         effect_strength=strength,
+        progress=interactive(),
     )
+    log.info("wrote %s", written)
+    return written
 
 
 def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
@@ -209,6 +213,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
         status = "success"
     finally:
         tracking.close_logger(logger, status)
+    log.info("results: %s", ", ".join(str(output_dir / split / "metrics.json") for split in results))
     return results["val"]["pos_err"]
 
 
@@ -228,6 +233,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
         status = "success"
     finally:
         tracking.close_logger(logger, status)
+    log.info("results: %s", output_dir / "metrics.json")
     return document
 
 

@@ -10,7 +10,7 @@ from contactbench import atomic
 from contactbench.diagnosis.phases import PHASES, label_phases
 from contactbench.diagnosis.segments import COMPONENTS
 from contactbench.evaluation.figures import new_figure, save_figure
-from contactbench.models.base import make_context
+from contactbench.protocol import make_context
 from contactbench.sim.rollout import rollout_context
 
 

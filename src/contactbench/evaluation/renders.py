@@ -20,7 +20,7 @@ from contactbench import runs
 from contactbench.evaluation.figures import new_figure, save_figure
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
-from contactbench.models.base import make_context
+from contactbench.protocol import make_context
 
 log = logging.getLogger(__name__)
 COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")

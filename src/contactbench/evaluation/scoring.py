@@ -14,7 +14,8 @@ import numpy as np
 
 from contactbench import atomic
 from contactbench.metrics import MetricsResult, compute_metrics
-from contactbench.models.base import ContactModel, make_context
+from contactbench.models.base import ContactModel
+from contactbench.protocol import make_context
 from contactbench.recordings import Recordings
 
 log = logging.getLogger(__name__)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from contactbench.errors import ContactbenchError
-from contactbench.models.base import ContactModel, Context
+from contactbench.models.base import ContactModel
+from contactbench.protocol import Context
 from contactbench.recordings import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import rollout_context

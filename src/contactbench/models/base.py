@@ -3,49 +3,12 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
 import numpy as np
 
 from contactbench.errors import ContactbenchError
-from contactbench.kinematics import estimate_velocities
-from contactbench.recordings import Recordings, Split
-
-
-@dataclass(frozen=True)
-class Context:
-    """What a model may see of a trajectory: its first C frames, and how many frames to return."""
-
-    poses: np.ndarray  # [N, C, K, 7] recorded poses, world frame, quaternions w-first
-    velocities: np.ndarray  # [N, C, K, 6] recorded [v, w] (world frame), or estimated from poses if absent
-    lengths: np.ndarray  # [N] frames each trajectory has in total (context included)
-
-    @property
-    def n_context(self) -> int:
-        return self.poses.shape[1]
-
-    @property
-    def horizon(self) -> int:
-        """Frames to return per trajectory: the longest length."""
-        return int(self.lengths.max())
-
-
-def make_context(split: Split, dt: float, context_frames: int) -> Context:
-    """The shared protocol: the first `context_frames` frames, with velocities given or estimated."""
-    if context_frames < 2:
-        raise ContactbenchError(f"context_frames must be at least 2 to define a velocity, got {context_frames}")
-    if split.lengths.min() <= context_frames:
-        short = int(np.argmin(split.lengths))
-        raise ContactbenchError(
-            f"trajectory {short} has {split.lengths[short]} frames; the protocol needs more than "
-            f"context_frames={context_frames}"
-        )
-    poses = split.poses[:, :context_frames]
-    if split.velocities is not None:
-        velocities = split.velocities[:, :context_frames]
-    else:
-        velocities = estimate_velocities(poses, dt)
-    return Context(poses=poses, velocities=velocities, lengths=split.lengths)
+from contactbench.protocol import Context
+from contactbench.recordings import Recordings
 
 
 class ContactModel(ABC):

@@ -21,7 +21,7 @@ import mujoco.rollout
 import numpy as np
 
 from contactbench import rotations
-from contactbench.models.base import Context
+from contactbench.protocol import Context
 from contactbench.recordings import Recordings
 from contactbench.sim.mujoco_scene import (
     ContactParameters,

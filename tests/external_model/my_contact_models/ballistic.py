@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from contactbench.metrics import position_error
-from contactbench.models.base import ContactModel, Context, make_context
+from contactbench.models.base import ContactModel
+from contactbench.protocol import Context, make_context
 from contactbench.recordings import Recordings
 
 

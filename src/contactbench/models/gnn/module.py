@@ -23,10 +23,11 @@ import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, Sampler, SequentialSampler
 
 from contactbench.metrics import position_error, rotation_error
-from contactbench.models.base import ContactModel, make_context
+from contactbench.models.base import ContactModel
 from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, MeshScene, collision_radius
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
+from contactbench.protocol import make_context, scored_frames, trajectory_means
 from contactbench.recordings import Recordings, Split
 
 LR_SCHEDULES = ("constant", "cosine")
@@ -258,16 +259,12 @@ class GNNModule(pl.LightningModule):
         context = make_context(chosen, self.dataset.dt, context_frames)
         predicted = self.to_contact_model().rollout(self.dataset, context)
         recorded = chosen.poses[:, : context.horizon]
-        frames = np.arange(context.horizon)
-        scored = (frames >= context_frames) & (frames < chosen.lengths[:, None])
+        scored = scored_frames(chosen.lengths, context.horizon, context_frames)
         per_frame = {
             "pos_err": position_error(recorded, predicted, self.dataset.widths()).mean(axis=-1),
             "rot_err": rotation_error(recorded, predicted).mean(axis=-1),
         }
-        return {
-            name: float((np.where(scored, values, 0.0).sum(axis=1) / scored.sum(axis=1)).mean())
-            for name, values in per_frame.items()
-        }
+        return {name: float(trajectory_means(values, scored).mean()) for name, values in per_frame.items()}
 
     def to_contact_model(self) -> ContactModel:
         if not bool(self.simulator.normalisation_fitted):

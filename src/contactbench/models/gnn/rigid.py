@@ -30,10 +30,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from contactbench.models.base import ContactModel, Context
+from contactbench.models.base import ContactModel
 from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.simulator import STATISTICS_CHUNK, LearnedSimulator, check_same_scene, random_walk_noise
+from contactbench.protocol import Context
 from contactbench.recordings import Recordings, Split
 
 

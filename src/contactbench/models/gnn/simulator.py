@@ -29,10 +29,11 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from contactbench.models.base import ContactModel, Context
+from contactbench.models.base import ContactModel
 from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.network import EncodeProcessDecode
 from contactbench.models.gnn.shape_matching import poses_from_vertices, project_to_rigid
+from contactbench.protocol import Context
 from contactbench.recordings import Recordings, Split
 
 EDGE_FEATURES = 9

@@ -26,10 +26,11 @@ from torch import nn
 from torch.utils.data import BatchSampler, DataLoader, RandomSampler, SequentialSampler, TensorDataset
 
 from contactbench.evaluation.scoring import score_model
-from contactbench.models.base import ContactModel, Context
+from contactbench.models.base import ContactModel
 from contactbench.models.hybrid import dynamics, features, inverse, lcp
 from contactbench.models.hybrid.dynamics import Scene, State
 from contactbench.models.hybrid.lcp import ContactSettings
+from contactbench.protocol import Context
 from contactbench.recordings import Recordings, Split
 
 FrictionPredictor = Callable[[np.ndarray], np.ndarray]  # body features [B, 9 + V] -> body-frame friction wrench [B, 6]

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench.metrics import configuration_error
-from contactbench.models.base import Context, make_context
+from contactbench.protocol import Context, make_context, scored_frames, trajectory_means
 from contactbench.recordings import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts
@@ -76,14 +76,12 @@ class ConfigurationObjective:
             self.rollouts.renew_data()
             return Evaluation(np.full(len(candidates), self.unstable_penalty), np.ones(len(candidates), dtype=bool))
         horizon = context.horizon
-        scored = np.arange(horizon)[None, :] >= context.n_context
-        mask = scored & (np.arange(horizon)[None, :] < context.lengths[:, None])  # [n, T]
+        mask = scored_frames(context.lengths, horizon, context.n_context)  # [n, T]
         with np.errstate(invalid="ignore", over="ignore"):
             errors = configuration_error(
                 self.truth[indices, :horizon], result.poses, self.widths, self.position_exponent
             )  # [B, n, T]
-            per_trajectory = np.where(mask, errors, 0.0).sum(axis=-1) / mask.sum(axis=-1)
-            losses = per_trajectory.mean(axis=-1)
+            losses = trajectory_means(errors, mask).mean(axis=-1)
         # Frames past a trajectory's end are simulated (the batch shares one horizon) but never scored: a candidate
         # is unstable only where it is judged.
         unstable = (result.unstable_frames & mask).any(axis=(-1, -2)) | ~np.isfinite(losses)
