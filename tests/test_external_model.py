@@ -30,6 +30,10 @@ def test_a_model_outside_the_package_trains_evaluates_and_reports_as_fitted(tmp_
     assert evaluated.returncode == 0, evaluated.stderr[-2000:]
     at_evaluate = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert at_evaluate["pos_err"] == at_train["pos_err"] and at_evaluate["rot_err_rad"] == at_train["rot_err_rad"]
+    # without train_dir: the run index (paths.log_dir/index) finds the model the sweep fitted
+    found = run_entry_point("evaluate.py", [*model, "split=test", f"hydra.run.dir={tmp_path / 'eval3'}"], tmp_path)
+    assert found.returncode == 0, found.stderr[-2000:]
+    assert json.loads((tmp_path / "eval3" / "metrics.json").read_text())["pos_err"] == at_train["pos_err"]
     report = [sys.executable, "-m", "contactbench.evaluation.report", str(sweep)]
     reported = subprocess.run(report, capture_output=True, text=True, timeout=300)
     assert reported.returncode == 0, reported.stderr[-2000:]
@@ -44,3 +48,7 @@ def test_a_model_outside_the_package_trains_evaluates_and_reports_as_fitted(tmp_
         assert refused.returncode == 2 and len(message.splitlines()) == 1, message
         assert str(run / "fitted.json") in message and (("'state'" in message) or "not valid JSON" in message)
         assert (run / "fitted.json").read_text() == bad
+    (entry,) = (tmp_path / "outputs" / "index").iterdir()
+    entry.write_text("{not json")
+    refused = run_entry_point("evaluate.py", [*model, "split=test", f"hydra.run.dir={tmp_path / 'eval4'}"], tmp_path)
+    assert refused.returncode == 2 and str(entry) in refused.stderr and len(refused.stderr.strip().splitlines()) == 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import warnings
@@ -17,6 +18,7 @@ from contactbench import atomic
 from contactbench.errors import ContactbenchError
 
 SIGNATURE = "signature.json"
+INDEX = "index"  # under paths.log_dir: one entry per fitted run, named by its signature
 
 
 class FolderRefused(ContactbenchError):
@@ -175,3 +177,32 @@ def read_fitted_state(path: Path) -> dict:
 
 def _clip(text: str, limit: int = 80) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def signature_key(cfg: DictConfig) -> str:
+    """A short, stable name for a run signature: the run index's file name."""
+    text = json.dumps(json.loads(json.dumps(run_signature(cfg))), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def index_run(cfg: DictConfig, output_dir: Path) -> None:
+    """Record where the model of this signature was fitted (paths.log_dir/index/<key>.json): evaluate.py finds runs
+    made by any sweep or folder name through it."""
+    entry = {"run": str(Path(output_dir).resolve()), "model": cfg.model.name, "dataset": str(cfg.dataset.path)}
+    atomic.write_json(Path(cfg.paths.log_dir) / INDEX / f"{signature_key(cfg)}.json", entry)
+
+
+def indexed_run(cfg: DictConfig) -> Path | None:
+    """The run folder the index holds for this signature, if any (its signature is checked again when loaded)."""
+    path = Path(cfg.paths.log_dir) / INDEX / f"{signature_key(cfg)}.json"
+    if not path.is_file():
+        return None
+    try:
+        run = json.loads(path.read_text())["run"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as error:
+        raise FolderRefused(
+            f"{path}: field 'run' unreadable ({error!r}); expected the index entry train.py wrote"
+        ) from None
+    if not isinstance(run, str):
+        raise FolderRefused(f"{path}: field 'run' is a {type(run).__name__} (expected a folder path)")
+    return Path(run)

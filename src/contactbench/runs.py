@@ -213,8 +213,20 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
         status = "success"
     finally:
         tracking.close_logger(logger, status)
+    folders.index_run(cfg, output_dir)
     log.info("results: %s", ", ".join(str(output_dir / split / "metrics.json") for split in results))
     return results["val"]["pos_err"]
+
+
+def _train_dir(cfg: DictConfig) -> Path:
+    """cfg.train_dir if a model was fitted there; else the run the index holds for this signature (a sweep's)."""
+    train_dir = Path(cfg.train_dir)
+    if not (train_dir / "fitted.json").is_file():
+        found = folders.indexed_run(cfg)
+        if found is not None:
+            log.info("the model of these settings was fitted in %s (run index)", found)
+            return found
+    return train_dir
 
 
 def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
@@ -228,7 +240,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
-        model = load_fitted(cfg, dataset, Path(cfg.train_dir))
+        model = load_fitted(cfg, dataset, _train_dir(cfg))
         document = _score_and_write(cfg, model, dataset, cfg.split, output_dir, logger)
         status = "success"
     finally:
