@@ -26,6 +26,19 @@ SMALL = [
 SIZES = {"train": 30, "val": 40, "test": 20}
 
 
+def concealed(tmp_path, name: str, effect: str, strength: float):
+    """A small frictioncubes dataset (SIZES) generated with one concealed effect."""
+    return generate_dataset(
+        CUBE,
+        tmp_path / name,
+        split_sizes=SIZES,
+        workers=1,
+        progress=False,
+        effects=(effect,),
+        effect_strength=strength,
+    )
+
+
 def diagnose(path, out_dir, tmp_path, overrides=()):
     cfg = compose_config("diagnose", [f"recordings={path}", *overrides], tmp_path)
     verdict = runs.diagnose(cfg, out_dir)
@@ -73,15 +86,7 @@ def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_pat
 
 def test_a_strong_floor_tilt_is_named_and_a_null_dataset_gets_none(tmp_path):
     null = generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False)
-    tilted = generate_dataset(
-        CUBE,
-        tmp_path / "tilt",
-        split_sizes=SIZES,
-        workers=1,
-        progress=False,
-        effects=("floor_tilt",),
-        effect_strength=2.0,
-    )
+    tilted = concealed(tmp_path, "tilt", "floor_tilt", 2.0)
     verdict, document = diagnose(tilted, tmp_path / "tilt_out", tmp_path, SMALL)
     assert verdict == "effect" and [e["name"] for e in document["effects"]] == ["floor_tilt"]
     fitted = document["effects"][0]["parameters"]
@@ -133,15 +138,7 @@ def test_only_a_smoke_budget_is_called_inconclusive():
 def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_gravity_scale(tmp_path):
     # Strength 2 (0.91 g): at strength 1 (0.95 g) the effect closes just about the 5% margin on these few tosses,
     # whose short-horizon loss lives almost all in impacts.
-    weak = generate_dataset(
-        CUBE,
-        tmp_path / "weak",
-        split_sizes=SIZES,
-        workers=1,
-        progress=False,
-        effects=("gravity_scale",),
-        effect_strength=2.0,
-    )
+    weak = concealed(tmp_path, "weak", "gravity_scale", 2.0)
     verdict, document = diagnose(weak, tmp_path / "weak_out", tmp_path, SMALL)
     falling = document["free_flight"]
     assert falling["differs"] and falling["confirmed"] and falling["scale"] == pytest.approx(1 / 1.1, abs=3e-3)

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_diagnose import CUBE, SIZES, SMALL, diagnose
+from test_diagnose import SMALL, concealed, diagnose
 
 from contactbench.diagnosis import open_world
 from contactbench.diagnosis.phases import FREE, PHASES, SLIDING
-from contactbench.generation.generator import generate_dataset
 
 DT = 0.01
 
@@ -57,15 +56,7 @@ def test_forward_selection_finds_a_planted_term_and_nothing_in_noise():
 
 
 def test_physics_outside_the_library_is_unexplained_and_located_where_it_acts(tmp_path):
-    turning = generate_dataset(
-        CUBE,
-        tmp_path / "coriolis",
-        split_sizes=SIZES,
-        workers=1,
-        progress=False,
-        effects=("coriolis",),
-        effect_strength=2.0,
-    )
+    turning = concealed(tmp_path, "coriolis", "coriolis", 2.0)
     verdict, document = diagnose(turning, tmp_path / "out", tmp_path, SMALL)
     assert verdict == "unexplained" and document["effects"] == []
     found = document["open_world"]

@@ -140,44 +140,37 @@ def fit_correction(
     columns = {c: np.where(usable[:, None, None], dictionary.column(*c), 0.0) for c in candidates}
     # a term that never acts (a phase nobody visits) cannot be chosen
     candidates = [c for c in candidates if np.abs(columns[c]).max() > 0]
+    # Outputs do not interact: each keeps its own weighted target, terms, fit and RSS, and a candidate is scored by
+    # refitting its output alone.
+    scaled = [np.sqrt(weights[..., o]).ravel() for o in range(6)]
+    targets = [target[..., o].ravel() * scaled[o] for o in range(6)]
+    rss = [float(targets[o] @ targets[o]) for o in range(6)]
+    fits: list[dict] = [{} for _ in range(6)]  # per output: term -> coefficient
     chosen: list[tuple[int, int, int]] = []
-    coefficients = np.zeros(0)
-    rss = float(np.sum(weights * target**2))
-    best_bic = n_entries * np.log(rss / n_entries)
+    best_bic = n_entries * np.log(sum(rss) / n_entries)
     while len(chosen) < max_terms:
-        # one output at a time is independent: score each candidate by the drop in its output's weighted RSS
         best = None
         for candidate in candidates:
-            if candidate in chosen:
+            output = candidate[0]
+            if candidate in fits[output]:
                 continue
-            trial = chosen + [candidate]
-            xi, trial_rss = _solve(trial, columns, target, weights)
-            if best is None or trial_rss < best[2]:
-                best = (candidate, xi, trial_rss)
+            terms = [*fits[output], candidate]
+            design = np.stack([columns[t].ravel() for t in terms], axis=1) * scaled[output][:, None]
+            xi, *_ = np.linalg.lstsq(design, targets[output], rcond=None)
+            left = targets[output] - design @ xi
+            total = sum(rss) - rss[output] + float(left @ left)
+            if best is None or total < best[0]:
+                best = (total, candidate, dict(zip(terms, xi)), float(left @ left))
         if best is None:
             break
-        bic = n_entries * np.log(best[2] / n_entries) + (len(chosen) + 1) * np.log(n_entries)
+        total, candidate, fit, output_rss = best
+        bic = n_entries * np.log(total / n_entries) + (len(chosen) + 1) * np.log(n_entries)
         if bic >= best_bic:
             break
         best_bic = bic
-        chosen.append(best[0])
-        coefficients = best[1]
-    return Correction(chosen, coefficients)
-
-
-def _solve(terms, columns, target, weights) -> tuple[np.ndarray, float]:
-    """Weighted least squares of the terms; terms of different outputs do not interact."""
-    coefficients = np.zeros(len(terms))
-    rss = float(np.sum(weights * target**2))
-    for output in {term[0] for term in terms}:
-        indices = [i for i, term in enumerate(terms) if term[0] == output]
-        w = weights[..., output].ravel()
-        design = np.stack([columns[terms[i]].ravel() for i in indices], axis=1) * np.sqrt(w)[:, None]
-        y = target[..., output].ravel() * np.sqrt(w)
-        xi, *_ = np.linalg.lstsq(design, y, rcond=None)
-        coefficients[indices] = xi
-        rss += float(np.sum((y - design @ xi) ** 2) - np.sum(y**2))
-    return coefficients, rss
+        chosen.append(candidate)
+        fits[candidate[0]], rss[candidate[0]] = fit, output_rss
+    return Correction(chosen, np.array([fits[term[0]][term] for term in chosen]))
 
 
 def corrected(residuals: np.ndarray, correction: Correction, dictionary: Dictionary) -> np.ndarray:

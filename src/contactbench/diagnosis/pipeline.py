@@ -287,7 +287,8 @@ class Diagnosis:
             if len(rivals) > 1:  # not one effect inside another (air_drag in wind): the data cannot say which
                 for item in tied:
                     item[0]["confounded_with"] = [name for name in rivals if name != item[0]["name"]]
-                self.confounded = sorted(rivals) if not current.effects else self.confounded
+                if not current.effects:  # a tie in a later round adds nothing, the named effects stand
+                    self.confounded = sorted(rivals)
                 break
             chosen[0]["chosen"] = True
             _, current, values, _, _ = chosen
@@ -393,14 +394,12 @@ class Diagnosis:
         return record
 
     def _open_world_inputs(self, fit: ResidualFit, split, hypothesis: Hypothesis, values: np.ndarray, origin) -> dict:
-        segments = fit.simulator.segments
         residuals = fit.residuals(hypothesis, values[None])[0]
-        features, phases = open_world.recorded_states(self.dataset, split, segments, origin)
+        features, phases = open_world.recorded_states(self.dataset, split, fit.simulator.segments, origin)
         return {
             "residuals": residuals,
             "usable": (np.abs(residuals) < UNSTABLE_RESIDUAL).all(axis=(1, 2, 3)),
             "dictionary": open_world.integrate(features, phases, self.dataset.dt, self.dataset.widths()),
-            "phases": segments.phase,
         }
 
     @staticmethod
