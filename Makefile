@@ -12,7 +12,7 @@ main: $(VENV)/.installed
 	$(BIN)/python train.py -m experiment=main
 	$(BIN)/python -m contactbench.evaluation.report outputs/main
 
-# The whole benchmark at one budget, conf/experiment/matrix.yaml: {mujoco_default, sysid, gnn, hybrid} x 22
+# The whole benchmark at one budget, conf/experiment/matrix.yaml: {mujoco_default, sysid, gnn, hybrid, residual} x 22
 # synthetic variants + the real cube, scored on val and test, then the report. The hybrid model skips multi-body
 # variants with one line each. `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep
 # to a Slurm cluster.

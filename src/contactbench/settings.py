@@ -24,6 +24,7 @@ COUNTS = {
     "sysid": ("evaluations", "restarts", "num_workers"),
     "gnn": ("max_steps", "val_check_interval"),
     "hybrid": ("max_epochs",),
+    "residual": ("max_epochs", "patience", "segments_per_epoch", "val_segments"),
     "diagnose": (
         "segment_frames",
         "fit_trajectories",
@@ -37,7 +38,7 @@ COUNTS = {
     ),
 }
 COUNTS_OR_ALL = {"sysid": ("batch_trajectories", "val_trajectories"), "gnn": ("val_rollouts",)}
-RATES = {"gnn": ("lr",)}
+RATES = {"gnn": ("lr",), "residual": ("lr",)}
 # Top-level keys no config file sets that the code reads when given (+effects=[floor_tilt] for generate, ...).
 OPTIONAL_KEYS = ("effects", "effect_strength", "overwrite", "resume", "torch_threads")
 

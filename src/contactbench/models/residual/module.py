@@ -1,0 +1,436 @@
+"""The residual model in Lightning: SysID fits MuJoCo first, then an MLP learns the impulse that corrects its steps.
+
+Fitting runs in two stages inside one `trainer.fit`. Stage one (`on_fit_start`, once: a resumed run finds its result
+in the checkpoint) is `model=sysid`'s search with the same budget and seed: NGOpt on train, restart chosen on val.
+Stage two trains the correction on rollouts: windows of `unroll` frames from recorded train states are rolled out
+by the corrected MuJoCo and scored frame by frame with equation (1)'s terms; the gradient is the adjoint of MuJoCo's
+finite-difference linearisation (`rollout_loss`). Inputs are standardised with train statistics kept as buffers, and
+outputs scaled by the standard deviation of the one-step corrections (`transitions`) and clipped to `max_correction`
+of them; the last layer starts at zero, so training starts from the identified MuJoCo itself.
+
+Why not regress the one-step correction (what MuJoCo gets wrong from each recorded state to the next)? Measured at
+budget=quick, val split: on the real cube it halved the one-step error and made rollouts worse (position 0.2345 ->
+0.27-0.33 widths), on frictioncubes mu = 0.5 (no tracker noise) likewise (0.148 -> 0.16-0.24); from the model's own
+states instead of recorded ones (DAgger-style) rotation improved on the real cube (0.41 -> 0.35-0.37 rad) and
+position still got worse (0.27-0.35). Every variant's rollout error rose while its regression loss fell.
+
+Selection is on the val split's rollout position error after every epoch (checkpoint and early stopping on
+`val/pos_err`). The identified MuJoCo alone is scored on val too: if no epoch beats it, the fitted model is MuJoCo
+without the correction (fitted.json says `correction_used: false`), so the residual model is never selected worse
+than SysID on val.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch import nn
+from torch.utils.data import DataLoader
+
+from contactbench import rotations
+from contactbench.config import generations
+from contactbench.evaluation.scoring import score_model
+from contactbench.kinematics import estimate_velocities
+from contactbench.models.base import ContactModel
+from contactbench.models.residual import correction
+from contactbench.models.residual.correction import Bodies, Predictor
+from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
+from contactbench.models.sysid.search_space import SearchSpace
+from contactbench.protocol import Context
+from contactbench.recordings import Recordings, Split
+from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities, pack_state
+from contactbench.sim.rollout import MujocoRollouts
+
+log = logging.getLogger(__name__)
+STD_FLOOR = 1e-6  # a constant feature (a single body's neighbour) or target stays finite once standardised
+
+
+class ResidualContactModel(ContactModel):
+    """Rollout: MuJoCo with the identified parameters steps all trajectories one frame in one native call, the
+    learned correction is applied to every body (projected: see `correction`), MuJoCo steps on."""
+
+    name = "residual"
+
+    def __init__(
+        self,
+        parameters: ContactParameters,
+        predict: Predictor | None,
+        contact_margin: float,
+        substeps: int = 1,
+        nthread: int | None = None,
+    ):
+        self.parameters = parameters
+        self.predict = predict
+        self.contact_margin = float(contact_margin)
+        self.substeps = substeps
+        self.nthread = nthread
+
+    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
+        simulator = MujocoRollouts(dataset, self.nthread, self.substeps)
+        bodies = Bodies.of(dataset)
+        n, n_bodies = len(context.poses), dataset.n_bodies
+        qpos, qvel = pack_state(context.poses[:, -1], context.velocities[:, -1])
+        qpos, qvel = qpos.reshape(n, n_bodies, 7), qvel.reshape(n, n_bodies, 6)
+        poses = np.empty((n, context.horizon, n_bodies, 7))
+        poses[:, : context.n_context] = context.poses
+        for frame in range(context.n_context, context.horizon):
+            qpos, qvel = self.step(simulator, bodies, qpos, qvel)
+            poses[:, frame] = qpos
+        return poses
+
+    def step(
+        self, simulator: MujocoRollouts, bodies: Bodies, qpos: np.ndarray, qvel: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """States [N, K, 7] / [N, K, 6] one frame later."""
+        n, n_bodies = qpos.shape[:2]
+        qpos1, qvel1, _ = simulator.step(self.parameters, qpos.reshape(n, -1), qvel.reshape(n, -1))
+        qpos1, qvel1 = qpos1.reshape(n, n_bodies, 7), qvel1.reshape(n, n_bodies, 6)
+        if self.predict is None:
+            return qpos1, qvel1
+        inputs = correction.features(bodies, qpos, qvel, qpos1, qvel1)
+        change = self.predict(inputs.reshape(n * n_bodies, -1)).reshape(n, n_bodies, 6)
+        return correction.corrected(bodies, qpos, qvel, qpos1, qvel1, change, self.contact_margin)
+
+
+def transitions(
+    split: Split, bodies: Bodies, simulator: MujocoRollouts, parameters: ContactParameters
+) -> tuple[np.ndarray, np.ndarray]:
+    """Features [M K, F] and one-step correction targets [M K, 6] of every transition t -> t + 1 of a split (M of
+    them), from the recorded states: what MuJoCo gets wrong per step, for the scale of inputs and outputs."""
+    velocities = split.velocities if split.velocities is not None else estimate_velocities(split.poses, bodies.dt)
+    trajectory, frame = np.nonzero(np.arange(split.poses.shape[1] - 1)[None, :] < split.lengths[:, None] - 1)
+    poses = split.poses[trajectory, frame]
+    qpos0 = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
+    qvel0 = body_frame_velocities(qpos0, velocities[trajectory, frame])
+    m, n_bodies = qpos0.shape[:2]
+    qpos1, qvel1, diverged = simulator.step(parameters, qpos0.reshape(m, -1), qvel0.reshape(m, -1))
+    qpos1, qvel1 = qpos1.reshape(m, n_bodies, 7), qvel1.reshape(m, n_bodies, 6)
+    keep = ~diverged
+    inputs = correction.features(bodies, qpos0[keep], qvel0[keep], qpos1[keep], qvel1[keep])
+    recorded_next = split.poses[trajectory, frame + 1][keep]
+    wanted = correction.targets(qpos0[keep], qpos1[keep], qvel1[keep], recorded_next, bodies.dt)
+    return inputs.reshape(-1, bodies.n_features), wanted.reshape(-1, 6)
+
+
+def segment_starts(split: Split, first_frames: int | None) -> np.ndarray:
+    """[S, 2] (trajectory, first frame) of the windows a split offers: from every frame with a next one, or only from
+    frame `first_frames - 1` (the protocol's last context frame) when first_frames is given."""
+    frames = np.arange(split.poses.shape[1])[None, :]
+    starts = frames + 1 < split.lengths[:, None]
+    if first_frames is not None:
+        starts &= frames == first_frames - 1
+    return np.argwhere(starts)
+
+
+class ResidualDataModule(pl.LightningDataModule):
+    """Windows of the train split (a fresh random draw of `segments_per_epoch` per epoch) and a fixed draw of the
+    val split's, as (trajectory, first frame) pairs: the module rolls each window out itself."""
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int,
+        unroll: int,
+        from_context: bool = False,
+        batch_size: int = 256,
+        segments_per_epoch: int = 8192,
+        val_segments: int = 1024,
+        seed: int = 0,
+    ):
+        super().__init__()
+        self.dataset = dataset
+        self.unroll = int(unroll)
+        self.first_frames = int(context_frames) if from_context else None
+        self.batch_size = int(batch_size)
+        self.segments_per_epoch = int(segments_per_epoch)
+        self.val_segments = int(val_segments)
+        self.seed = int(seed)
+
+    def _draw(self, split: str, count: int, rng: np.random.Generator) -> torch.Tensor:
+        starts = segment_starts(self.dataset.split(split), self.first_frames)
+        chosen = starts[np.sort(rng.choice(len(starts), size=min(count, len(starts)), replace=False))]
+        return torch.as_tensor(chosen[rng.permutation(len(chosen))])
+
+    def train_dataloader(self) -> DataLoader:
+        rng = np.random.default_rng([self.seed, self.trainer.current_epoch])
+        return DataLoader(self._draw("train", self.segments_per_epoch, rng), batch_size=self.batch_size)
+
+    def val_dataloader(self) -> DataLoader:
+        rng = np.random.default_rng([self.seed, 1 << 20])
+        return DataLoader(self._draw("val", self.val_segments, rng), batch_size=self.batch_size)
+
+
+class ResidualModule(pl.LightningModule):
+    """SysID'd MuJoCo parameters and an MLP (SiLU) from step features to a body-frame velocity correction."""
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int,
+        sysid: dict,
+        hidden: Sequence[int] = (256, 256),
+        lr: float = 1e-3,
+        contact_margin: float = 0.02,
+        max_correction: float = 4.0,
+        unroll: int = 16,
+        seed: int = 0,
+        nthread: int | None = None,
+        substeps: int = 1,
+    ):
+        super().__init__()
+        # Plain values only: a checkpoint's hyperparameters must open with weights_only=True.
+        sysid = {str(key): value for key, value in dict(sysid).items()}
+        hidden = tuple(int(width) for width in hidden)
+        self.save_hyperparameters(ignore=["dataset"])
+        self.dataset = dataset
+        self.bodies = Bodies.of(dataset)
+        self.space = SearchSpace(dataset.n_bodies)
+        widths = (self.bodies.n_features, *hidden)
+        layers: list[nn.Module] = []
+        for width_in, width_out in zip(widths[:-1], widths[1:]):
+            layers += [nn.Linear(width_in, width_out), nn.SiLU()]
+        self.network = nn.Sequential(*layers, nn.Linear(widths[-1], 6))
+        # Zero output at first: training starts from the identified MuJoCo itself, not from a random correction.
+        nn.init.zeros_(self.network[-1].weight)
+        nn.init.zeros_(self.network[-1].bias)
+        self.register_buffer(
+            "parameters_vector", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64)
+        )
+        self.register_buffer("feature_mean", torch.zeros(widths[0]))
+        self.register_buffer("feature_std", torch.zeros(widths[0]))  # zero until fitted
+        self.register_buffer("target_std", torch.ones(6))
+        self.register_buffer("sysid_val_pos_err", torch.tensor(float("inf"), dtype=torch.float64))
+        self.register_buffer("val_pos_err", torch.tensor(float("inf"), dtype=torch.float64))
+        self._simulator: MujocoRollouts | None = None
+        self._jacobian_data: mujoco.MjData | None = None
+
+    # ------------------------------------------------------------ stage one: SysID, then statistics
+
+    @property
+    def identified(self) -> ContactParameters:
+        if not torch.isfinite(self.parameters_vector).all():
+            raise RuntimeError("the residual model's MuJoCo parameters are not identified yet (no SysID stage run)")
+        return self.space.from_vector(self.parameters_vector.cpu().numpy())
+
+    @property
+    def simulator(self) -> MujocoRollouts:
+        if self._simulator is None:
+            self._simulator = MujocoRollouts(self.dataset, self.hparams.nthread, self.hparams.substeps)
+        return self._simulator
+
+    def on_fit_start(self) -> None:
+        if not torch.isfinite(self.parameters_vector).all():
+            self.parameters_vector.copy_(torch.as_tensor(self._identify(), dtype=torch.float64))
+            self.sysid_val_pos_err.fill_(self._val_pos_err(None))
+            log.info(
+                "residual: SysID identified %s (val pos_err %.4f without the correction)",
+                self.space.describe(self.identified),
+                float(self.sysid_val_pos_err),
+            )
+        if not bool((self.feature_std > 0).all()):
+            inputs, wanted = self.transitions("train")
+            self.feature_mean.copy_(torch.as_tensor(inputs.mean(axis=0)))
+            self.feature_std.copy_(torch.as_tensor(inputs.std(axis=0)).clamp_min(STD_FLOOR))
+            self.target_std.copy_(torch.as_tensor(wanted.std(axis=0)).clamp_min(STD_FLOOR))
+
+    def _identify(self) -> np.ndarray:
+        """The SysID stage: model=sysid's search with the same settings, in a trainer of its own."""
+        settings = self.hparams.sysid
+        search = SysIDModule(
+            self.dataset,
+            self.hparams.context_frames,
+            seed=self.hparams.seed,
+            nthread=self.hparams.nthread,
+            substeps=self.hparams.substeps,
+            **settings,
+        )
+        ticks = SysIDDataModule(
+            self.dataset,
+            self.hparams.context_frames,
+            generations(settings["evaluations"], settings["num_workers"], settings["restarts"]),
+        )
+        with tempfile.TemporaryDirectory(prefix="contactbench-sysid-") as scratch:
+            trainer = pl.Trainer(
+                max_epochs=-1,
+                limit_val_batches=0,
+                logger=False,
+                enable_checkpointing=False,
+                enable_progress_bar=False,
+                enable_model_summary=False,
+                callbacks=[NevergradSearch()],
+                default_root_dir=scratch,
+                accelerator="cpu",
+                devices=1,
+            )
+            trainer.fit(search, datamodule=ticks, weights_only=True)
+        return search.selected.cpu().numpy()
+
+    def transitions(self, split: str) -> tuple[np.ndarray, np.ndarray]:
+        return transitions(self.dataset.split(split), self.bodies, self.simulator, self.identified)
+
+    # ------------------------------------------------------------ stage two: the correction
+
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        """Body-frame velocity correction [B, 6] from step features [B, F]."""
+        standardised = self.network((inputs - self.feature_mean) / self.feature_std)
+        bound = self.hparams.max_correction
+        return self.target_std * standardised.clamp(-bound, bound)
+
+    def rollout_loss(self, split: str, segments: torch.Tensor) -> torch.Tensor:
+        """Roll the corrected MuJoCo `unroll` frames from each window's recorded first state and score every frame
+        against the recording: (position error in half-widths)^2 + (rotation error in rad)^2, equation (1)'s terms.
+
+        MuJoCo is not differentiable, so the gradient is the adjoint of its linearisation: mjd_transitionFD gives
+        each step's Jacobian A_t (finite differences, MuJoCo's soft contacts included), the costate runs backward
+        (lambda_t = dl_t/dx_t + A_t^T lambda_{t+1}) and each correction u_t receives B_t^T lambda_{t+1}, B_t being how
+        a velocity change moves the state (x += dt u, v += u). The network's inputs are taken as given (their own
+        dependence on the state is left out of the gradient). Returns a surrogate whose value is the loss and whose
+        gradient is that estimate."""
+        recorded = self.dataset.split(split)
+        trajectory, first = segments[:, 0].cpu().numpy(), segments[:, 1].cpu().numpy()
+        velocities = recorded.velocities
+        if velocities is None:
+            velocities = estimate_velocities(recorded.poses, self.bodies.dt)
+        poses = recorded.poses[trajectory, first]
+        qpos = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
+        qvel = body_frame_velocities(qpos, velocities[trajectory, first])
+        n, n_bodies = qpos.shape[:2]
+        nv = 6 * n_bodies
+        dt = self.bodies.dt
+        half_widths = self.dataset.widths() / 2
+        corrections, inputs_to, losses, gradients, jacobians = [], [], [], [], []
+        for step in range(self.hparams.unroll):
+            if step > 0:
+                jacobians.append(self._step_jacobians(qpos, qvel))
+            qpos1, qvel1, diverged = self.simulator.step(self.identified, qpos.reshape(n, -1), qvel.reshape(n, -1))
+            qpos1, qvel1 = qpos1.reshape(n, n_bodies, 7), qvel1.reshape(n, n_bodies, 6)
+            inputs = np.nan_to_num(correction.features(self.bodies, qpos, qvel, qpos1, qvel1))
+            predicted = self(torch.as_tensor(inputs, dtype=torch.float32))
+            plain = np.nan_to_num(predicted.detach().numpy().astype(np.float64))
+            change, fraction = correction.projected_change(
+                self.bodies, qpos, qvel, qpos1, qvel1, plain, self.hparams.contact_margin
+            )
+            qpos, qvel = correction.integrate(self.bodies, qpos1, qvel1, change * fraction[..., None])
+            # How the (unprojected, body-frame) correction moves the state: [n, 2 nv, 6 K].
+            orientation = np.nan_to_num(rotations.to_matrix(qpos1[..., 3:]))
+            effect = np.zeros((n, 2 * nv, nv))
+            for k in range(n_bodies):
+                scale = fraction[:, k, None, None]
+                effect[:, 6 * k : 6 * k + 3, 6 * k : 6 * k + 3] = dt * orientation[:, k] * scale
+                effect[:, 6 * k + 3 : 6 * k + 6, 6 * k + 3 : 6 * k + 6] = dt * np.eye(3) * scale
+                effect[:, nv + 6 * k : nv + 6 * k + 3, 6 * k : 6 * k + 3] = orientation[:, k] * scale
+                effect[:, nv + 6 * k + 3 : nv + 6 * k + 6, 6 * k + 3 : 6 * k + 6] = np.eye(3) * scale
+            frame = first + step + 1
+            counted = (~diverged & (frame < recorded.lengths[trajectory])).astype(float)
+            target = recorded.poses[trajectory, np.minimum(frame, recorded.lengths[trajectory] - 1)]
+            position_error = (qpos[..., :3] - target[..., :3]) / half_widths[:, None]
+            rotation_error = rotations.to_rotation_vector(
+                rotations.multiply(qpos[..., 3:], rotations.conjugate(rotations.normalize(target[..., 3:])))
+            )
+            loss = (position_error**2).sum(-1) + (rotation_error**2).sum(-1)  # [n, K]
+            gradient = np.zeros((n, 2 * nv))
+            local_rotation = np.einsum("nkji,nkj->nki", rotations.to_matrix(qpos[..., 3:]), rotation_error)
+            for k in range(n_bodies):
+                gradient[:, 6 * k : 6 * k + 3] = 2 * position_error[:, k] / half_widths[k]
+                gradient[:, 6 * k + 3 : 6 * k + 6] = 2 * local_rotation[:, k]
+            gradients.append(np.nan_to_num(gradient) * counted[:, None])
+            losses.append(np.nan_to_num(loss).sum(-1) * counted)
+            corrections.append(predicted)
+            inputs_to.append(effect)
+        costate = np.zeros((n, 2 * nv))
+        surrogate = torch.zeros(())
+        for step in reversed(range(self.hparams.unroll)):
+            costate = gradients[step] + costate
+            pull = np.einsum("nij,ni->nj", inputs_to[step], costate).reshape(n, n_bodies, 6)
+            surrogate = surrogate + (corrections[step] * torch.as_tensor(pull, dtype=torch.float32)).sum()
+            if step > 0:
+                costate = np.einsum("nij,ni->nj", jacobians[step - 1], costate)
+        scale = 1.0 / max(float(n * self.hparams.unroll), 1.0)
+        value = float(np.sum(losses)) * scale
+        return surrogate * scale - (surrogate * scale).detach() + value
+
+    def _step_jacobians(self, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        """[n, 2 nv, 2 nv] d(state after one MuJoCo step)/d(state) in MuJoCo's tangent space, per item."""
+        model = self.simulator.model(self.identified)
+        if self._jacobian_data is None or self._jacobian_data.model is not model:
+            self._jacobian_data = mujoco.MjData(model)
+        data = self._jacobian_data
+        n = len(qpos)
+        out = np.zeros((n, 2 * model.nv, 2 * model.nv))
+        flat_qpos, flat_qvel = qpos.reshape(n, -1), qvel.reshape(n, -1)
+        for i in range(n):
+            if not (np.isfinite(flat_qpos[i]).all() and np.isfinite(flat_qvel[i]).all()):
+                continue
+            data.qpos[:] = flat_qpos[i]
+            data.qvel[:] = flat_qvel[i]
+            mujoco.mjd_transitionFD(model, data, 1e-6, False, out[i], None, None, None)
+        return out
+
+    def training_step(self, batch: torch.Tensor, batch_index: int) -> torch.Tensor:
+        loss = self.rollout_loss("train", batch)
+        self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=len(batch))
+        return loss
+
+    def validation_step(self, batch: torch.Tensor, batch_index: int) -> None:
+        self.log("val/loss", self.rollout_loss("val", batch), on_step=False, on_epoch=True, batch_size=len(batch))
+
+    def on_validation_epoch_end(self) -> None:
+        if self.trainer.sanity_checking:
+            return
+        self.val_pos_err.fill_(self._val_pos_err(self.predict))
+        self.log("val/pos_err", float(self.val_pos_err), prog_bar=True)
+        self.log("val/sysid_pos_err", float(self.sysid_val_pos_err))
+
+    def _val_pos_err(self, predict: Predictor | None) -> float:
+        model = ResidualContactModel(
+            self.identified,
+            predict,
+            self.hparams.contact_margin,
+            self.hparams.substeps,
+            self.hparams.nthread,
+        )
+        dataset = self.dataset
+        score = score_model(
+            model, dataset, "val", self.hparams.context_frames, dataset_name=dataset.name, variant="selection"
+        )
+        return float(score.metrics.summary["pos_err"])
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.network.parameters(), lr=self.hparams.lr)
+
+    def predict(self, inputs: np.ndarray) -> np.ndarray:
+        """NumPy face of `forward` for the rollout."""
+        was_training = self.training
+        self.eval()
+        with torch.no_grad():
+            out = self(torch.as_tensor(inputs, dtype=torch.float32, device=self.device)).cpu().numpy()
+        self.train(was_training)
+        return out.astype(np.float64)
+
+    @property
+    def corrects(self) -> bool:
+        """Whether the selected epoch beat the identified MuJoCo alone on val (else the correction is left out)."""
+        return bool(self.val_pos_err < self.sysid_val_pos_err)
+
+    def to_contact_model(self) -> ResidualContactModel:
+        return ResidualContactModel(
+            self.identified,
+            self.predict if self.corrects else None,
+            self.hparams.contact_margin,
+            self.hparams.substeps,
+            self.hparams.nthread,
+        )
+
+    def fitted_summary(self) -> dict:
+        return {
+            "parameters": self.space.describe(self.identified),
+            "val_pos_err_sysid": float(self.sysid_val_pos_err),
+            "val_pos_err_corrected": float(self.val_pos_err),
+            "correction_used": self.corrects,
+        }
