@@ -77,10 +77,14 @@ def test_every_group_option_is_covered():
 @pytest.mark.parametrize("experiment", options("experiment"))
 def test_an_experiment_sweeps_over_options_that_exist(experiment: str):
     params = OmegaConf.load(CONFIG_DIR / "experiment" / f"{experiment}.yaml").hydra.sweeper.params
-    assert set(params) == {"model", "variant"}
-    for group, values in params.items():
-        chosen = options(group) if values == "glob(*)" else values.split(",")
-        assert chosen and set(chosen) <= set(options(group)), (experiment, group, values)
+    assert {"model", "variant"} <= set(params)
+    train = OmegaConf.load(CONFIG_DIR / "train.yaml")
+    for key, values in params.items():
+        if key in ("model", "variant"):  # config groups: every value an option
+            chosen = options(key) if values == "glob(*)" else values.split(",")
+            assert chosen and set(chosen) <= set(options(key)), (experiment, key, values)
+        else:  # a setting train.yaml has
+            assert OmegaConf.select(train, key) is not None, (experiment, key)
 
 
 @pytest.mark.parametrize("entry", ENTRIES)

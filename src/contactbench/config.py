@@ -24,6 +24,13 @@ def generations(evaluations: int, num_workers: int, restarts: int) -> int:
     return -(-int(evaluations) // int(num_workers)) * int(restarts)
 
 
+def observed(noise_mm, frame_stride) -> str:
+    """The run-folder suffix of an observation: nothing for the recordings as they are."""
+    if float(noise_mm) == 0 and int(frame_stride) == 1:
+        return ""
+    return f",noise_mm={format_value(noise_mm)},frame_stride={int(frame_stride)}"
+
+
 def interactive() -> bool:
     """Progress bars only for a person at a terminal: not in CI, not when stderr goes to a file or a pipe."""
     return sys.stderr.isatty() and not os.environ.get("CI")
@@ -35,6 +42,7 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("cb.basename", lambda path: Path(str(path)).name, replace=True)
     OmegaConf.register_new_resolver("cb.generations", generations, replace=True)
     OmegaConf.register_new_resolver("cb.interactive", interactive, replace=True)
+    OmegaConf.register_new_resolver("cb.observed", observed, replace=True)
     OmegaConf.register_new_resolver("cb.wandb_offline", lambda: not os.environ.get("WANDB_API_KEY"), replace=True)
 
 

@@ -27,19 +27,25 @@ class FolderRefused(ContactbenchError):
 
 def run_signature(cfg: DictConfig) -> dict:
     """What makes a fitted model what it is; a run folder only resumes or serves a model with the same signature."""
-    return {
+    signature = {
         "model": OmegaConf.to_container(cfg.model, resolve=True),
         "dataset": str(cfg.dataset.path),
         "context_frames": int(cfg.context_frames),
         "seed": int(cfg.seed),
     }
+    observation = cfg.get("observation")
+    if observation is not None and (observation.noise_mm != 0 or observation.frame_stride != 1):
+        # Only when the data are observed otherwise: the folders of plain runs keep their signature.
+        signature["observation"] = OmegaConf.to_container(observation, resolve=True)
+    return signature
 
 
 def check_signature(cfg: DictConfig, run_dir: Path, action: str) -> None:
     recorded = Path(run_dir) / SIGNATURE
     if recorded.is_file() and _read_signature(recorded) != json.loads(json.dumps(run_signature(cfg))):
         raise FolderRefused(
-            f"{recorded}: the run there was made with other settings (model, budget, dataset, context_frames or seed) "
+            f"{recorded}: the run there was made with other settings (model, budget, dataset, observation, "
+            "context_frames or seed) "
             f"than this command; cannot {action} it. Use another folder (hydra.run.dir=...)"
             + (" or resume=false to start over" if action == "resume" else "")
         )

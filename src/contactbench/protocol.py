@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench.errors import ContactbenchError
-from contactbench.kinematics import estimate_velocities
+from contactbench.kinematics import fit_velocities
 from contactbench.recordings import Split
 
 
@@ -17,7 +17,7 @@ class Context:
     """What a model may see of a trajectory: its first C frames, and how many frames to return."""
 
     poses: np.ndarray  # [N, C, K, 7] recorded poses, world frame, quaternions w-first
-    velocities: np.ndarray  # [N, C, K, 6] recorded [v, w] (world frame), or estimated from poses if absent
+    velocities: np.ndarray  # [N, C, K, 6] recorded [v, w] (world frame), or fitted to the context poses if absent
     lengths: np.ndarray  # [N] frames each trajectory has in total (context included)
 
     @property
@@ -31,7 +31,9 @@ class Context:
 
 
 def make_context(split: Split, dt: float, context_frames: int) -> Context:
-    """The shared protocol: the first `context_frames` frames, with velocities given or estimated."""
+    """The shared protocol: the first `context_frames` frames, with velocities given or, where the recordings have
+    none, fitted to the context poses by least squares (`kinematics.fit_velocities`: tracker noise is averaged
+    over the context instead of being read twice by a backward difference)."""
     if context_frames < 2:
         raise ContactbenchError(f"context_frames must be at least 2 to define a velocity, got {context_frames}")
     if split.lengths.min() <= context_frames:
@@ -44,7 +46,7 @@ def make_context(split: Split, dt: float, context_frames: int) -> Context:
     if split.velocities is not None:
         velocities = split.velocities[:, :context_frames]
     else:
-        velocities = estimate_velocities(poses, dt)
+        velocities = fit_velocities(poses, dt)
     return Context(poses=poses, velocities=velocities, lengths=split.lengths)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
+from contactbench.observation import Observation
 from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings, require_frames
 
 log = logging.getLogger(__name__)
@@ -71,20 +73,41 @@ def generate(cfg: DictConfig) -> Path:
     return written
 
 
-def load_dataset(cfg: DictConfig, splits: list[str]) -> Recordings:
-    """Read the configured dataset's splits, generating a synthetic variant first if it is not there yet."""
+def observation_of(cfg: DictConfig) -> Observation:
+    node = cfg.get("observation") or {}
+    return Observation(
+        noise_mm=node.get("noise_mm", 0.0), frame_stride=node.get("frame_stride", 1), seed=node.get("seed", 0)
+    )
+
+
+@dataclass(frozen=True)
+class Observed:
+    """What the models see of a dataset (`dataset`), what they are scored against (`truth`) and how it was observed."""
+
+    dataset: Recordings
+    truth: Recordings
+    observation: dict
+
+
+def load_dataset(cfg: DictConfig, splits: list[str]) -> Observed:
+    """Read the configured dataset's splits (generating a synthetic variant first if it is not there yet) and observe
+    them as cfg.observation says (noise, frame stride); synthetic data are scored against the clean recording."""
     path = Path(cfg.dataset.path)
     if not (path / "meta.json").exists() and cfg.dataset.scene is not None:
         log.info("%s not found: generating it", path)
         generate(cfg)
-    dataset = read_recordings(path, splits)
+    recorded = read_recordings(path, splits)
+    observation = observation_of(cfg)
+    dataset = observation.observe(recorded)
+    truth = dataset if recorded.real or observation.plain else observation.clean(recorded)
+    scored_against = "clean recording" if truth is not dataset else "observed recording"
     context_frames = int(cfg.context_frames)
     require_frames(
         dataset,
         context_frames + 1,
         f"context_frames={context_frames} frames are given to the models, which predict the rest",
     )
-    return dataset
+    return Observed(dataset, truth, observation.describe(scored_against))
 
 
 # ---------------------------------------------------------------- models
@@ -174,10 +197,18 @@ def _configure_torch(cfg: DictConfig) -> None:
 
 
 def _score_and_write(
-    cfg: DictConfig, model: ContactModel, dataset: Recordings, split: str, out_dir: Path, logger
+    cfg: DictConfig, model: ContactModel, observed: Observed, split: str, out_dir: Path, logger
 ) -> dict:
+    dataset = observed.dataset
     score = score_model(
-        model, dataset, split, cfg.context_frames, dataset_name=cfg.dataset.name, variant=cfg.dataset.variant
+        model,
+        dataset,
+        split,
+        cfg.context_frames,
+        dataset_name=cfg.dataset.name,
+        variant=cfg.dataset.variant,
+        truth=observed.truth.split(split),
+        observation=observed.observation,
     )
     for key, value in score.metrics.summary.items():
         # A reported metric that is not a number (null in metrics.json) would rank as nothing at all: an error instead.
@@ -201,15 +232,16 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     pl.seed_everything(cfg.seed, workers=True)
     _configure_torch(cfg)
     splits = ["train", "val"] + (["test"] if cfg.test else [])
-    dataset = load_dataset(cfg, splits)
+    observed = load_dataset(cfg, splits)
+    dataset = observed.dataset
     folders.record(cfg, output_dir, "train")  # the dataset is readable and long enough: the run starts here
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
         model = _fit(cfg, dataset.for_models(["train", "val"]), output_dir, logger)
-        results = {"val": _score_and_write(cfg, model, dataset, "val", output_dir / "val", logger)}
+        results = {"val": _score_and_write(cfg, model, observed, "val", output_dir / "val", logger)}
         if cfg.test:
-            results["test"] = _score_and_write(cfg, model, dataset, "test", output_dir / "test", logger)
+            results["test"] = _score_and_write(cfg, model, observed, "test", output_dir / "test", logger)
         status = "success"
     finally:
         tracking.close_logger(logger, status)
@@ -235,13 +267,13 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     settings.check(cfg)
     folders.check(cfg, output_dir, "evaluate")
     _configure_torch(cfg)
-    dataset = load_dataset(cfg, [cfg.split])
+    observed = load_dataset(cfg, [cfg.split])
     folders.record(cfg, output_dir, "evaluate")
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
-        model = load_fitted(cfg, dataset, _train_dir(cfg))
-        document = _score_and_write(cfg, model, dataset, cfg.split, output_dir, logger)
+        model = load_fitted(cfg, observed.dataset, _train_dir(cfg))
+        document = _score_and_write(cfg, model, observed, cfg.split, output_dir, logger)
         status = "success"
     finally:
         tracking.close_logger(logger, status)

@@ -47,6 +47,15 @@ class Run:
         return float(self.summary["variant"].split("=", 1)[1])
 
 
+# How a dataset was observed (contactbench/observation.py): the sensitivity study's two axes and their plain values.
+OBSERVATION_AXES = {"noise_mm": ("tracking noise (mm)", 0.0), "frame_stride": ("frame stride (x dt)", 1)}
+
+
+def observed_plainly(summary: dict) -> bool:
+    """A run on the recordings as they are (every other figure and table is about these)."""
+    return all(summary.get(axis, plain) == plain for axis, (_, plain) in OBSERVATION_AXES.items())
+
+
 def load_test_runs(root: Path) -> list[Run]:
     runs = []
     for path in sorted(Path(root).rglob("metrics.json")):
@@ -179,8 +188,43 @@ def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
     return table
 
 
+def sensitivity_figure(runs: list[Run], dataset: str, variant: str, axis_key: str, path: Path) -> Path | None:
+    """Test error against one observation axis (the other held plain) per model, with the 25-75% band across test
+    trajectories; None unless some model was run at two or more values of the axis."""
+    label, _ = OBSERVATION_AXES[axis_key]
+    other = next(key for key in OBSERVATION_AXES if key != axis_key)
+    grouped: dict[str, list[Run]] = {}
+    for run in runs:
+        summary = run.summary
+        if (summary["dataset"], summary["variant"]) != (dataset, variant):
+            continue
+        if summary.get(other, OBSERVATION_AXES[other][1]) != OBSERVATION_AXES[other][1]:
+            continue
+        grouped.setdefault(summary["model"], []).append(run)
+    value = lambda run: run.summary.get(axis_key, OBSERVATION_AXES[axis_key][1])  # noqa: E731
+    grouped = {model: sorted(group, key=value) for model, group in sorted(grouped.items()) if len(group) > 1}
+    if not grouped:
+        return None
+    figure = new_figure(figsize=(8.4, 3.4))
+    axes = figure.subplots(1, 2)
+    for axis, (key, metric) in zip(axes, PANELS[:2]):
+        for model, group in grouped.items():
+            x = [value(run) for run in group]
+            (line,) = axis.plot(x, [run.summary[key] for run in group], marker="o", label=model)
+            low, high = zip(*(np.nanpercentile(run.per_trajectory[key], [25, 75]) for run in group))
+            axis.fill_between(x, low, high, alpha=0.15, color=line.get_color())
+        axis.grid(True, alpha=0.3)
+        axis.set_xlabel(label)
+        axis.set_ylabel(metric)
+    axes[0].legend(fontsize=8)
+    against = "the clean recording" if group[0].summary.get("scored_against") == "clean recording" else "the recording"
+    figure.suptitle(f"{dataset} {variant}: error vs {label.split(' (')[0]} (test, scored against {against})")
+    return save_figure(figure, path)
+
+
 def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str, str]]]:
-    runs = load_test_runs(root)
+    every_run = load_test_runs(root)
+    runs = [run for run in every_run if observed_plainly(run.summary)]
     drawn = [sweep_figure(runs, dataset, out_dir / f"{dataset}.png") for dataset in SWEEPS]
     drawn.append(
         per_frame_figure(
@@ -206,6 +250,10 @@ def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str,
             values=[0.0, 1.0],
         )
     )
+    for dataset, variant in sorted({(run.summary["dataset"], run.summary["variant"]) for run in every_run}):
+        for axis_key in OBSERVATION_AXES:
+            name = f"sensitivity_{axis_key}_{dataset}_{variant}".replace("=", "").replace(".", "p")
+            drawn.append(sensitivity_figure(every_run, dataset, variant, axis_key, out_dir / f"{name}.png"))
     return [path for path in drawn if path is not None], importance_table(runs)
 
 

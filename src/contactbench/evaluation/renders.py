@@ -40,13 +40,16 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
     predicted, truth = {}, None
     for train_dir in train_dirs:
         cfg = OmegaConf.load(train_dir / ".hydra" / "config.yaml")
-        dataset = runs.load_dataset(cfg, ["test"])
-        test = dataset.split("test").select(range(min(trajectories, dataset.split("test").n_trajectories)))
+        observed = runs.load_dataset(cfg, ["test"])
+        dataset = observed.dataset
+        chosen = range(min(trajectories, dataset.split("test").n_trajectories))
+        test = dataset.split("test").select(chosen)
         model = runs.load_fitted(cfg, dataset, train_dir)
         predicted[cfg.model.name] = model.rollout(
             dataset.for_models(), make_context(test, dataset.dt, cfg.context_frames)
         )
-        truth, lengths = test.poses, test.lengths
+        truth_split = observed.truth.split("test").select(chosen)
+        truth, lengths = truth_split.poses, truth_split.lengths
         label = f"{cfg.dataset.name} {cfg.dataset.variant}"
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
     return Rollouts(label, truth, lengths, predicted, meshes)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from contactbench import atomic
 from contactbench.errors import ContactbenchError
-from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, draw_all
+from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, draw_all, observed_plainly
 from contactbench.evaluation.renders import render_report
 
 COLUMNS = [
@@ -77,6 +77,51 @@ def grid_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def sensitivity_markdown(rows: list[dict]) -> str:
+    """Test position / rotation error per model at every observation (noise, frame stride) that was run, per
+    variant, and one sentence per model and variant: how much its position error grew at the most noise and at the
+    lowest frame rate against its plain run. Empty when every run observed the recordings as they are."""
+    tests = [row for row in rows if row["split"] == "test"]
+    if all(observed_plainly(row) for row in tests):
+        return ""
+    lines = []
+    for dataset, variant in sorted({(row["dataset"], row["variant"]) for row in tests}):
+        group = [row for row in tests if (row["dataset"], row["variant"]) == (dataset, variant)]
+        settings = sorted({(row.get("noise_mm", 0.0), row.get("frame_stride", 1)) for row in group})
+        models = sorted({row["model"] for row in group})
+        against = {row.get("scored_against", "recording") for row in group}
+        lines += [
+            f"### {dataset} {variant} (test; scored against the {' / '.join(sorted(against))})\n",
+            "| noise (mm) | frame stride | " + " | ".join(models) + " |",
+            "|---|---|" + "---|" * len(models),
+        ]
+        by_setting = {(row.get("noise_mm", 0.0), row.get("frame_stride", 1), row["model"]): row for row in group}
+        for noise, stride in settings:
+            cells = []
+            for model in models:
+                row = by_setting.get((noise, stride, model))
+                cells.append(f"{row['pos_err']:.3f} / {row['rot_err_rad']:.3f}" if row else "–")
+            lines.append(f"| {noise:g} | {stride} | " + " | ".join(cells) + " |")
+        lines.append("")
+        for model in models:
+            plain = by_setting.get((0.0, 1, model))
+            if plain is None:
+                continue
+            noisiest = max((s for s in settings if s[1] == 1 and (s[0], 1, model) in by_setting), default=None)
+            slowest = max((s for s in settings if s[0] == 0 and (0.0, s[1], model) in by_setting), key=lambda s: s[1])
+            parts = []
+            if noisiest and noisiest[0] > 0:
+                ratio = by_setting[(noisiest[0], 1, model)]["pos_err"] / plain["pos_err"]
+                parts.append(f"{ratio:.2f}x its plain position error at {noisiest[0]:g} mm of noise")
+            if slowest[1] > 1:
+                ratio = by_setting[(0.0, slowest[1], model)]["pos_err"] / plain["pos_err"]
+                parts.append(f"{ratio:.2f}x at 1/{slowest[1]} of the frame rate")
+            if parts:
+                lines.append(f"- {model}: " + "; ".join(parts) + ".")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
 def _variant_key(variant: str) -> tuple:
     try:
         return (0, float(variant.split("=", 1)[1]))
@@ -106,13 +151,16 @@ def write_report(root: Path, renders: bool = True) -> Path:
     """results.md and results.html in root: the results table, the paper's figures that the runs allow, Table 3, and
     (with renders) final poses of ground truth vs every method and a rollout GIF."""
     root = Path(root)
-    rows = collect(root)
-    if not rows:
+    every_row = collect(root)
+    if not every_row:
         raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
+    rows = [row for row in every_row if observed_plainly(row)]
+    sensitivity = sensitivity_markdown(every_row)
     figures, importance = draw_all(root, root / "figures")
     rendered = render_report(root, root / "renders") if renders else []
     sections = [
-        f"# Results under {root}\n\nEvery metrics.json below this folder ({len(rows)}); figures from the test split.\n",
+        f"# Results under {root}\n\nEvery metrics.json below this folder ({len(every_row)}); figures from the test "
+        "split; tables and figures of the recordings as they are, except the sensitivity section.\n",
         "## Test position error (widths) / rotation error (rad), val position error beside\n",
         grid_markdown(rows),
         "## Figures\n",
@@ -123,8 +171,18 @@ def write_report(root: Path, renders: bool = True) -> Path:
         importance_markdown(importance),
         "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
         *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
+        *(
+            [
+                "## Sensitivity to tracking noise and frame rate (test position / rotation error)\n",
+                "Every observation that was run (`observation.noise_mm`, `observation.frame_stride`); the figures "
+                "above named sensitivity_* draw the same runs with their 25-75% bands.\n",
+                sensitivity,
+            ]
+            if sensitivity
+            else []
+        ),
         "## Every run\n",
-        markdown_table(rows),
+        markdown_table(every_row),
     ]
     markdown = "\n".join(sections)
     atomic.write_text(root / "results.md", markdown)

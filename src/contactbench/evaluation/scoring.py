@@ -16,7 +16,7 @@ from contactbench import atomic
 from contactbench.metrics import MetricsResult, compute_metrics
 from contactbench.models.base import ContactModel
 from contactbench.protocol import make_context
-from contactbench.recordings import Recordings
+from contactbench.recordings import Recordings, Split
 
 log = logging.getLogger(__name__)
 
@@ -32,10 +32,22 @@ class Score:
 
 
 def score_model(
-    model: ContactModel, dataset: Recordings, split: str, context_frames: int, *, dataset_name: str, variant: str
+    model: ContactModel,
+    dataset: Recordings,
+    split: str,
+    context_frames: int,
+    *,
+    dataset_name: str,
+    variant: str,
+    truth: Split | None = None,
+    observation: dict | None = None,
 ) -> Score:
-    """Roll the model out from the first `context_frames` frames of every trajectory in `split` and score the rest."""
+    """Roll the model out from the first `context_frames` frames of every trajectory in `split` and score the rest
+    against `truth` (the same trajectories, e.g. without the observation's noise; by default the split itself)."""
     recorded = dataset.split(split)
+    reference = recorded if truth is None else truth
+    if reference.poses.shape[:3] != recorded.poses.shape[:3]:
+        raise ValueError(f"truth has poses of shape {reference.poses.shape}, the split {recorded.poses.shape}")
     context = make_context(recorded, dataset.dt, context_frames)
     started = time.perf_counter()
     predicted = model.rollout(dataset.for_models(), context)
@@ -44,7 +56,7 @@ def score_model(
     if predicted.shape != expected:
         raise ValueError(f"model {model.name!r} returned poses of shape {predicted.shape}, expected {expected}")
     metrics = compute_metrics(
-        recorded.poses[:, : context.horizon],
+        reference.poses[:, : context.horizon],
         predicted,
         recorded.lengths,
         context_frames,
@@ -58,6 +70,7 @@ def score_model(
         "split": split,
         "n_trajectories": recorded.n_trajectories,
         "context_frames": context_frames,
+        **(observation or {}),
     }
     return Score(header, metrics, elapsed)
 
