@@ -1,4 +1,4 @@
-"""Tests of how a dataset is observed (noise, frame stride), the protocol's fitted velocities and the sensitivity study."""
+"""Tests of how a dataset is observed (noise, frame stride), the fitted context velocities, the sensitivity study."""
 
 from __future__ import annotations
 
