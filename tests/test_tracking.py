@@ -40,3 +40,26 @@ def test_logger_records_scores(tmp_path, recorded_dataset, logger, monkeypatch):
     else:
         assert cfg.logger.offline is True
         assert list(tmp_path.rglob("offline-run-*"))
+
+
+def test_mlflow_holds_curated_params_tags_curves_and_artifacts(tmp_path, recorded_dataset):
+    from mlflow.tracking import MlflowClient
+
+    overrides = ["dataset=recordings", f"recordings={recorded_dataset}", "logger=mlflow", "model=sysid", "budget=smoke"]
+    runs.train(compose_config("train", overrides, tmp_path), tmp_path / "run")
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/outputs/mlflow.db")
+    (run,) = client.search_runs(client.get_experiment_by_name("contactbench").experiment_id)
+    params = run.data.params
+    assert params["model.name"] == "sysid" and params["budget.name"] == "smoke" and params["budget.evaluations"] == "16"
+    assert params["dataset.variant"] == "falling" and params["observation.noise_mm"] == "0.0"
+    assert not [key for key in params if key.startswith(("budget.gnn", "budget.hybrid", "hydra", "paths"))]
+    assert len(params) < 40
+    tags = run.data.tags
+    assert tags["run"] == "sysid/recordings/falling/smoke" and tags["task"] == "train"
+    assert tags["val/n_trajectories"] == "3" and "val/rollout_seconds" in tags
+    metrics = run.data.metrics
+    assert "val/pos_err" in metrics and "val/n_trajectories" not in metrics and "hp_metric" not in metrics
+    curve = client.get_metric_history(run.info.run_id, "val/pos_err_by_frame")
+    assert sorted(point.step for point in curve) == list(range(6, 20))  # the frames after the context
+    artifacts = {item.path for folder in ("", "val", "run") for item in client.list_artifacts(run.info.run_id, folder)}
+    assert {"val/metrics.json", "val/per_trajectory.csv", "run/scene.xml"} <= artifacts

@@ -220,8 +220,17 @@ def _score_and_write(
                 "(expected a finite number; check the data's dt and units, or the model's rollout)"
             )
     document = write_score(score, out_dir)
-    tracking.log_scores(logger, score.summary(), split)
+    tracking.log_scores(logger, document, split)
+    tracking.log_artifacts(logger, [out_dir / "metrics.json", out_dir / "per_trajectory.csv"])
     return document
+
+
+def write_scene(model: ContactModel, dataset: Recordings, output_dir: Path, logger) -> None:
+    """A MuJoCo-based model's fitted scene as MJCF (scene.xml: open it in MuJoCo's viewer), kept as an artifact."""
+    xml = model.scene_xml(dataset)
+    if xml is not None:
+        atomic.write_text(output_dir / "scene.xml", xml)
+        tracking.log_artifacts(logger, [output_dir / "scene.xml"])
 
 
 def train(cfg: DictConfig, output_dir: Path) -> float:
@@ -239,6 +248,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     status = "failed"
     try:
         model = _fit(cfg, dataset.for_models(["train", "val"]), output_dir, logger)
+        write_scene(model, dataset, output_dir, logger)
         results = {"val": _score_and_write(cfg, model, observed, "val", output_dir / "val", logger)}
         if cfg.test:
             results["test"] = _score_and_write(cfg, model, observed, "test", output_dir / "test", logger)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from pytorch_lightning.loggers import CSVLogger, Logger
+from pytorch_lightning.loggers import CSVLogger, Logger, MLFlowLogger, WandbLogger
 from pytorch_lightning.loggers.csv_logs import ExperimentWriter
 
 log = logging.getLogger(__name__)
@@ -24,24 +24,98 @@ def make_logger(cfg: DictConfig, output_dir: Path) -> Logger | None:
         location = {}  # one store for all runs (paths.log_dir/mlflow.db), so the dashboard compares them
         Path(cfg.paths.log_dir).mkdir(parents=True, exist_ok=True)
     logger = instantiate(cfg.logger, **location)
-    flat = {
-        key: value
-        for key, value in _flatten(OmegaConf.to_container(cfg, resolve=True)).items()
-        if not key.startswith("hydra")
-    }
-    logger.log_hyperparams(flat)
+    logger.log_hyperparams(curated_params(cfg))
+    _set_tags(logger, run_tags(cfg))
     return logger
 
 
-def log_scores(logger: Logger | None, summary: dict, prefix: str, step: int = 0) -> None:
+def curated_params(cfg: DictConfig) -> dict:
+    """What a dashboard compares runs by: the model's own config and budget, the dataset, the observation and the
+    protocol — not every other model's budget nor Hydra's bookkeeping."""
+    tree = OmegaConf.to_container(cfg, resolve=True)
+    model = tree.get("model") or {}
+    budget = tree.get("budget") or {}
+    chosen = {
+        "model": model,
+        "dataset": {key: (tree.get("dataset") or {}).get(key) for key in ("name", "variant", "path")},
+        "budget": {"name": budget.get("name"), **({} if model.get("name") not in budget else budget[model["name"]])},
+        "observation": tree.get("observation") or {},
+        "seed": tree.get("seed"),
+        "context_frames": tree.get("context_frames"),
+    }
+    return {key: value for key, value in _flatten(chosen).items() if value is not None}
+
+
+def run_tags(cfg: DictConfig) -> dict[str, str]:
+    tags = {
+        "task": str(cfg.get("task_name", "")),
+        "model": str(cfg.model.name) if "model" in cfg else "",
+        "dataset": str(cfg.dataset.name) if "dataset" in cfg else "",
+        "variant": str(cfg.dataset.variant) if "dataset" in cfg else "",
+        "budget": str(cfg.budget.name) if "budget" in cfg else "",
+    }
+    tags["run"] = "/".join(tags[key] for key in ("model", "dataset", "variant", "budget"))
+    return tags
+
+
+# Scores are metrics; the rest of a metrics.json summary (counts, timings, the observation) is bookkeeping: tags.
+SCORES = (
+    "pos_err",
+    "rot_err_rad",
+    "floor_penetration_m",
+    "min_vertex_height_m",
+    "interbody_penetration_m",
+    "pairwise_collisions",
+    "pairwise_collisions_true",
+)
+CURVES = ("pos_err", "rot_err_rad")  # per-frame curves logged with step = frame
+
+
+def log_scores(logger: Logger | None, document: dict, prefix: str, step: int = 0) -> None:
+    """A metrics.json's scores as metrics, its per-frame error curves with step = frame, the rest as tags."""
     if logger is None:
         return
     numbers = {
-        f"{prefix}/{key}": float(value)
-        for key, value in summary.items()
-        if isinstance(value, (int, float)) and not isinstance(value, bool)
+        f"{prefix}/{key}": float(document[key])
+        for key in SCORES
+        if isinstance(document.get(key), (int, float)) and not isinstance(document.get(key), bool)
     }
     logger.log_metrics(numbers, step=step)
+    curves = document.get("per_frame") or {}
+    for key in CURVES:
+        for frame, value in enumerate(curves.get(key) or []):
+            if value is not None:
+                logger.log_metrics({f"{prefix}/{key}_by_frame": float(value)}, step=frame)
+    _set_tags(
+        logger,
+        {
+            f"{prefix}/{key}": str(value)
+            for key, value in document.items()
+            if key not in SCORES and key != "per_frame" and not isinstance(value, (dict, list))
+        },
+    )
+
+
+def log_artifacts(logger: Logger | None, paths: list[Path]) -> None:
+    """Files of the run folder (metrics.json, per-trajectory CSV, the fitted scene) into the tracking store, where it
+    keeps artifacts (MLflow, W&B); the others have them in the run folder already."""
+    if logger is None:
+        return
+    for path in paths:
+        if not Path(path).is_file():
+            continue
+        if isinstance(logger, MLFlowLogger):
+            logger.experiment.log_artifact(logger.run_id, str(path), artifact_path=Path(path).parent.name)
+        elif isinstance(logger, WandbLogger):
+            logger.experiment.save(str(path), base_path=str(Path(path).parent.parent), policy="now")
+
+
+def _set_tags(logger: Logger, tags: dict[str, str]) -> None:
+    if isinstance(logger, MLFlowLogger):
+        for key, value in tags.items():
+            logger.experiment.set_tag(logger.run_id, key, value[:5000])
+    elif isinstance(logger, WandbLogger):
+        logger.experiment.config.update({f"tags/{key}": value for key, value in tags.items()}, allow_val_change=True)
 
 
 def close_logger(logger: Logger | None, status: str = "success") -> None:

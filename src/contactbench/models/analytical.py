@@ -8,7 +8,7 @@ from contactbench.errors import ContactbenchError
 from contactbench.models.base import ContactModel
 from contactbench.protocol import Context
 from contactbench.recordings import Recordings
-from contactbench.sim.mujoco_scene import ContactParameters
+from contactbench.sim.mujoco_scene import ContactParameters, scene_xml
 from contactbench.sim.rollout import rollout_context
 
 # Per-object friction is shared by all bodies of a scene; stiffness/damping are MuJoCo's direct solref (-k -b).
@@ -42,6 +42,9 @@ class MujocoContactModel(ContactModel):
 
     def contact_parameters(self, dataset: Recordings) -> ContactParameters:
         return self.parameters if self.parameters is not None else preset_parameters(self.preset, dataset.n_bodies)
+
+    def scene_xml(self, dataset: Recordings) -> str:
+        return scene_xml(dataset, self.contact_parameters(dataset), self.substeps)
 
     def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
         return rollout_context(dataset, context, self.contact_parameters(dataset), substeps=self.substeps)

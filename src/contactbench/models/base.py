@@ -40,6 +40,10 @@ class ContactModel(ABC):
                 f"({', '.join(sorted(state))}): implement load_fitted_state beside fitted_state"
             )
 
+    def scene_xml(self, dataset: Recordings) -> str | None:
+        """The MuJoCo scene (MJCF) this model simulates `dataset` with, if it is MuJoCo-based; else None."""
+        return None
+
     @property
     def learns(self) -> bool:
         """Whether this model's class fits anything (overrides `fit`)."""

@@ -181,7 +181,7 @@ class GNNModule(pl.LightningModule):
         seed: int = 0,
     ):
         super().__init__()
-        self.save_hyperparameters(ignore=["dataset"])
+        self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
         check_history_fits(context_frames, velocity_history)
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")

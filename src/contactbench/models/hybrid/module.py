@@ -134,7 +134,7 @@ class HybridModule(pl.LightningModule):
         scene = dynamics.scene_from_recordings(dataset)
         _check_context_frames(context_frames)
         hidden = tuple(int(width) for width in hidden)  # plain ints: a checkpoint must open with weights_only=True
-        self.save_hyperparameters(ignore=["dataset"])
+        self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
         self.settings = ContactSettings(
             contact_margin=contact_margin, stabilisation=stabilisation, restitution=restitution
         )

@@ -44,7 +44,7 @@ from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, S
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import Context
 from contactbench.recordings import Recordings, Split
-from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities, pack_state
+from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities, pack_state, scene_xml
 from contactbench.sim.rollout import MujocoRollouts
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,9 @@ class ResidualContactModel(ContactModel):
         self.contact_margin = float(contact_margin)
         self.substeps = substeps
         self.nthread = nthread
+
+    def scene_xml(self, dataset: Recordings) -> str:
+        return scene_xml(dataset, self.parameters, self.substeps)
 
     def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
         simulator = MujocoRollouts(dataset, self.nthread, self.substeps)
@@ -187,7 +190,7 @@ class ResidualModule(pl.LightningModule):
         # Plain values only: a checkpoint's hyperparameters must open with weights_only=True.
         sysid = {str(key): value for key, value in dict(sysid).items()}
         hidden = tuple(int(width) for width in hidden)
-        self.save_hyperparameters(ignore=["dataset"])
+        self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
         self.dataset = dataset
         self.bodies = Bodies.of(dataset)
         self.space = SearchSpace(dataset.n_bodies)

@@ -60,7 +60,7 @@ class SysIDModule(pl.LightningModule):
         for name, value in (("evaluations", evaluations), ("restarts", restarts), ("num_workers", num_workers)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
-        self.save_hyperparameters(ignore=["dataset"])
+        self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
         self.automatic_optimization = False
         self.dataset = dataset
         self.space = SearchSpace(dataset.n_bodies)
