@@ -13,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
+from matplotlib.colors import to_rgb
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from omegaconf import OmegaConf
 
 from contactbench import runs
-from contactbench.evaluation.figures import new_figure, save_figure
+from contactbench.evaluation.figures import new_figure, observed_plainly, save_figure
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import make_context
@@ -33,6 +34,8 @@ class Rollouts:
     lengths: np.ndarray  # [n]
     predicted: dict[str, np.ndarray]  # model -> [n, T, K, 7]
     meshes: list[Mesh]
+    dt: float  # s per frame
+    floor_z: float
 
 
 def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
@@ -52,22 +55,32 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
         truth, lengths = truth_split.poses, truth_split.lengths
         label = f"{cfg.dataset.name} {cfg.dataset.variant}"
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
-    return Rollouts(label, truth, lengths, predicted, meshes)
+        dt, floor_z = dataset.dt, dataset.floor_z
+    return Rollouts(label, truth, lengths, predicted, meshes, dt, floor_z)
+
+
+LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 
 
 def _draw(axis, poses: np.ndarray, meshes: list[Mesh], colour: str, alpha: float, label: str | None) -> None:
+    """Solid bodies, each face shaded by its angle to a fixed light (coplanar triangles alike: no diagonals)."""
+    base = np.array(to_rgb(colour))
     for k, mesh in enumerate(meshes):
         if not np.isfinite(poses[k]).all():
             continue
         corners = world_vertices(poses[k], mesh.vertices)
-        faces = Poly3DCollection(
-            [corners[face] for face in mesh.faces], facecolor=colour, edgecolor="k", linewidths=0.2, alpha=alpha
-        )
+        triangles = corners[mesh.faces]  # [F, 3, 3]
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        shade = 0.45 + 0.55 * np.clip(normals @ LIGHT, 0.0, 1.0)
+        colours = np.concatenate([base[None] * shade[:, None], np.full((len(shade), 1), alpha)], axis=1)
+        faces = Poly3DCollection(list(triangles), facecolors=colours, edgecolor="none", linewidths=0)
         faces.set_label(label if k == 0 else None)
         axis.add_collection3d(faces)
 
 
 def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
+    """Limits around the toss, a floor grid every 5 cm and a 10 cm scale bar on the floor; no ticks."""
     centres = np.concatenate(
         [rollouts.truth[n, : rollouts.lengths[n], :, :3].reshape(-1, 3)]
         + [p[n, : rollouts.lengths[n], :, :3].reshape(-1, 3) for p in rollouts.predicted.values()]
@@ -75,9 +88,18 @@ def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
     centres = centres[np.isfinite(centres).all(axis=1)]
     middle = np.median(centres, axis=0)
     reach = max(0.25, float(np.percentile(np.abs(centres[:, :2] - middle[:2]), 95)) + 0.1)
-    axis.set_xlim(middle[0] - reach, middle[0] + reach)
-    axis.set_ylim(middle[1] - reach, middle[1] + reach)
-    axis.set_zlim(0.0, reach)
+    low, high = middle[:2] - reach, middle[:2] + reach
+    floor = rollouts.floor_z
+    for x in np.arange(np.ceil(low[0] / 0.05) * 0.05, high[0], 0.05):
+        axis.plot([x, x], [low[1], high[1]], [floor, floor], color="0.85", linewidth=0.5)
+    for y in np.arange(np.ceil(low[1] / 0.05) * 0.05, high[1], 0.05):
+        axis.plot([low[0], high[0]], [y, y], [floor, floor], color="0.85", linewidth=0.5)
+    start = low + 0.03
+    axis.plot([start[0], start[0] + 0.1], [start[1], start[1]], [floor, floor], color="k", linewidth=2)
+    axis.text(start[0], start[1] + 0.02, floor, "10 cm", fontsize=7)
+    axis.set_xlim(low[0], high[0])
+    axis.set_ylim(low[1], high[1])
+    axis.set_zlim(floor, floor + reach)
     axis.set_box_aspect((1, 1, 0.5))
     axis.set_xticks([])
     axis.set_yticks([])
@@ -102,25 +124,27 @@ def final_poses_figure(rollouts: Rollouts, path: Path) -> Path:
 
 
 def rollout_gif(rollouts: Rollouts, path: Path, toss: int = 0, every: int = 3) -> Path:
-    """An animation of one toss: ground truth and every method, side by side."""
+    """An animation of one toss: ground truth and every method side by side (three panels a row), time in seconds."""
     panels = {"ground truth": rollouts.truth, **rollouts.predicted}
-    figure = new_figure(figsize=(3.0 * len(panels), 3.2))
-    axes = [figure.add_subplot(1, len(panels), i + 1, projection="3d") for i in range(len(panels))]
+    columns = min(3, len(panels))
+    rows = -(-len(panels) // columns)
+    figure = new_figure(figsize=(3.6 * columns, 3.4 * rows + 0.4))
+    axes = [figure.add_subplot(rows, columns, i + 1, projection="3d") for i in range(len(panels))]
     frames = range(0, int(rollouts.lengths[toss]), every)
 
     def show(t: int):
         for axis, (name, poses), colour in zip(axes, panels.items(), ("0.6",) + COLOURS):
             axis.cla()
-            _draw(axis, poses[toss, t], rollouts.meshes, colour, 0.8, None)
+            _draw(axis, poses[toss, t], rollouts.meshes, colour, 1.0, None)
             _frame_axes(axis, rollouts, toss)
-            axis.set_title(name, fontsize=8)
-        figure.suptitle(f"{rollouts.label}, test toss {toss}, frame {t}", fontsize=9)
+            axis.set_title(name, fontsize=10)
+        figure.suptitle(f"{rollouts.label}, test toss {toss}: t = {t * rollouts.dt:.2f} s", fontsize=11)
         return []
 
     animation = FuncAnimation(figure, show, frames=frames, blit=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial.gif")
-    animation.save(partial, writer=PillowWriter(fps=15))
+    animation.save(partial, writer=PillowWriter(fps=round(1 / (rollouts.dt * every))), dpi=100)
     partial.replace(path)
     return path
 
@@ -139,8 +163,8 @@ def render_report(root: Path, out_dir: Path) -> list[Path]:
     groups: dict[tuple[str, str], list[Path]] = {}
     for metrics in sorted(Path(root).rglob("test/metrics.json")):
         run_dir = metrics.parent.parent
-        if (run_dir / ".hydra" / "config.yaml").is_file():
-            summary = json.loads(metrics.read_text())
+        summary = json.loads(metrics.read_text())
+        if (run_dir / ".hydra" / "config.yaml").is_file() and observed_plainly(summary):
             groups.setdefault((summary["dataset"], summary["variant"]), []).append(run_dir)
     chosen = [key for key in groups if any(key[0] == d and (v is None or key[1] == v) for d, v in RENDERED)] or list(
         groups
