@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 from test_pipeline import run_entry_point
@@ -25,6 +26,9 @@ def test_tiny_matrix_multirun_then_report(tmp_path):
         timeout=400,
     )
     assert result.returncode == 0, result.stderr[-3000:]
+    documents = [json.loads(path.read_text()) for path in (tmp_path / "sweep").rglob("metrics.json")]
+    values = {document["variant_values"]["friction"] for document in documents}
+    assert values == {0.0, 1.0}  # numbers in metrics.json, not parsed back out of folder names
     report = write_report(tmp_path / "sweep")
     text = report.read_text()
     # 2 models x 2 variants x (val, test) rows

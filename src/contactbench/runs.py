@@ -208,7 +208,7 @@ def _score_and_write(
         dataset_name=cfg.dataset.name,
         variant=cfg.dataset.variant,
         truth=observed.truth.split(split),
-        observation=observed.observation,
+        annotations={**observed.observation, "variant_values": dict(cfg.dataset.get("values") or {})},
     )
     for key, value in score.metrics.summary.items():
         # A reported metric that is not a number (null in metrics.json) would rank as nothing at all: an error instead.

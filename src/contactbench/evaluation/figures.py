@@ -43,7 +43,10 @@ class Run:
 
     @property
     def value(self) -> float:
-        """The varied parameter's value, read from the variant name (e.g. 'friction=0.25')."""
+        """The varied parameter's value: metrics.json's variant_values, or (older files) the variant's name."""
+        values = self.summary.get("variant_values") or {}
+        if len(values) == 1:
+            return float(next(iter(values.values())))
         return float(self.summary["variant"].split("=", 1)[1])
 
 

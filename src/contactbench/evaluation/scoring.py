@@ -40,10 +40,11 @@ def score_model(
     dataset_name: str,
     variant: str,
     truth: Split | None = None,
-    observation: dict | None = None,
+    annotations: dict | None = None,
 ) -> Score:
     """Roll the model out from the first `context_frames` frames of every trajectory in `split` and score the rest
-    against `truth` (the same trajectories, e.g. without the observation's noise; by default the split itself)."""
+    against `truth` (the same trajectories, e.g. without the observation's noise; by default the split itself).
+    `annotations` join the header (how the data were observed, the variant's values)."""
     recorded = dataset.split(split)
     reference = recorded if truth is None else truth
     if reference.poses.shape[:3] != recorded.poses.shape[:3]:
@@ -70,7 +71,7 @@ def score_model(
         "split": split,
         "n_trajectories": recorded.n_trajectories,
         "context_frames": context_frames,
-        **(observation or {}),
+        **(annotations or {}),
     }
     return Score(header, metrics, elapsed)
 
