@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 
 from test_pipeline import run_entry_point
 
-from contactbench.evaluation.report import write_report
+from contactbench.evaluation.report import expected_cells, write_report
 
 
 def test_tiny_matrix_multirun_then_report(tmp_path):
@@ -52,3 +53,32 @@ def test_tiny_matrix_multirun_then_report(tmp_path):
     assert final_poses and final_poses[0].stat().st_size > 10_000
     assert next((tmp_path / "sweep" / "renders").glob("rollout_*.gif")).read_bytes()[:6] == b"GIF89a"
     assert "](renders/final_poses_" in text
+
+
+def test_the_report_accounts_for_every_job_the_sweep_asked_for(tmp_path):
+    sweep = tmp_path / "sweep"
+    result = run_entry_point(
+        "train.py",
+        [
+            "-m",
+            "model=mujoco_default,hybrid",
+            "variant=multicubes_2,frictioncubes_0",
+            "budget=smoke",
+            "test=true",
+            "generation.split_sizes={train:6,val:4,test:4}",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        tmp_path,
+        timeout=400,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    gone = next(sweep.glob("*model=mujoco_default*variant=frictioncubes_0"))
+    shutil.rmtree(gone)  # as if the sweep had stopped before this job
+    cells = {(cell["model"], cell["variant"]): cell for cell in expected_cells(sweep)}
+    assert cells[("mujoco_default", "multicubes_2")]["status"] == "done"
+    assert cells[("hybrid", "frictioncubes_0")]["status"] == "done"
+    assert cells[("mujoco_default", "frictioncubes_0")]["status"] == "missing"
+    skipped = cells[("hybrid", "multicubes_2")]
+    assert skipped["status"] == "skipped" and "single-body" in skipped["why"]
+    text = write_report(sweep, renders=False).read_text()
+    assert "4 jobs asked for: 2 done, 1 skipped, 0 failed, 0 unfinished, 1 missing." in text

@@ -7,6 +7,7 @@ import functools
 import logging
 import os
 import sys
+from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
@@ -14,9 +15,9 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
-from contactbench import settings
-from contactbench.errors import ContactbenchError
-from contactbench.folders import FolderRefused
+from contactbench import atomic, settings
+from contactbench.errors import ContactbenchError, NotApplicable
+from contactbench.folders import OUTCOME, FolderRefused
 
 log = logging.getLogger("contactbench")
 
@@ -53,6 +54,13 @@ def _one_line(error: OmegaConfBaseException) -> str:
     return f"config: {lines[0] if lines else type(error).__name__}" + (f" ({key})" if key else "")
 
 
+def _record_outcome(status: str, why: str) -> None:
+    """What the report says about a sweep job that wrote no metrics (done jobs need no record: metrics.json is it)."""
+    folder = Path(HydraConfig.get().runtime.output_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic.write_json(folder / OUTCOME, {"status": status, "why": why.removeprefix("error: ")})
+
+
 def guarded(main):
     @functools.wraps(main)
     def wrapper(cfg):
@@ -69,6 +77,7 @@ def guarded(main):
                     print(f"{message} (job skipped)", file=sys.stderr)
                 else:
                     log.error("%s (job skipped)", message)
+                    _record_outcome("skipped" if isinstance(error, NotApplicable) else "failed", message)
                 return None
             print(message, file=sys.stderr)
             sys.exit(2)

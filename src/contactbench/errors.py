@@ -3,3 +3,7 @@
 
 class ContactbenchError(ValueError):
     """Raised for input a user can fix (a malformed dataset, a model that does not apply to a dataset, ...)."""
+
+
+class NotApplicable(ContactbenchError):
+    """A model that does not apply to a dataset (e.g. a single-body model on several bodies): a sweep skips the job."""

@@ -19,6 +19,7 @@ from contactbench.errors import ContactbenchError
 
 SIGNATURE = "signature.json"
 INDEX = "index"  # under paths.log_dir: one entry per fitted run, named by its signature
+OUTCOME = "outcome.json"  # in a sweep job's folder that wrote no metrics: skipped or failed, and why
 
 
 class FolderRefused(ContactbenchError):

@@ -5,13 +5,21 @@ from __future__ import annotations
 import argparse
 import base64
 import html
+import itertools
 import json
+import re
 from pathlib import Path
 
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import Glob
+from omegaconf import OmegaConf
+
 from contactbench import atomic
+from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, draw_all, observed_plainly
 from contactbench.evaluation.renders import render_report
+from contactbench.folders import OUTCOME
 
 COLUMNS = [
     ("model", "model", "{}"),
@@ -122,6 +130,69 @@ def sensitivity_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _same(a: str, b: str) -> bool:
+    """Two override values alike as Hydra writes them into folder names (true / True, 0 / 0.0)."""
+    try:
+        return float(a) == float(b)
+    except ValueError:
+        return a.lower() == b.lower()
+
+
+def _sweep_values(override) -> list[str]:
+    value = override.value()
+    if isinstance(value, Glob):
+        return value.filter(sorted(path.stem for path in (CONFIG_DIR / override.key_or_group).glob("*.yaml")))
+    return list(override.sweep_string_iterator())
+
+
+def expected_cells(root: Path) -> list[dict] | None:
+    """Every job the sweep under root was asked for (its multirun.yaml: the experiment's sweeper params and the command
+    line's overrides) and what became of it: done (a metrics.json), skipped or failed (the job's outcome.json says
+    why), unfinished (a folder without either), missing (no folder). None when root is not a sweep."""
+    record = Path(root) / "multirun.yaml"
+    if not record.is_file():
+        return None
+    hydra = OmegaConf.load(record).hydra
+    lines = [f"{key}={value}" for key, value in (hydra.sweeper.params or {}).items()] + list(hydra.overrides.task)
+    parsed = {override.key_or_group: override for override in OverridesParser.create().parse_overrides(lines)}
+    sweeps = {key: _sweep_values(override) for key, override in parsed.items() if override.is_sweep_override()}
+    folders = []
+    for folder in sorted(path for path in Path(root).iterdir() if path.is_dir() and "=" in path.name):
+        # Hydra's override_dirname: key=value items joined by ',' (a value may hold commas: {train:6,val:4})
+        pairs = dict(item.partition("=")[::2] for item in re.split(r",(?=[\w.+/@-]+=)", folder.name))
+        folders.append((pairs, folder))
+    cells = []
+    for values in itertools.product(*sweeps.values()):
+        job = dict(zip(sweeps, values))
+        match = next(
+            (folder for pairs, folder in folders if all(_same(pairs.get(k, ""), v) for k, v in job.items())), None
+        )
+        status, why = "missing", "no job folder"
+        if match is not None:
+            outcome = match / OUTCOME
+            if any(match.glob("*/metrics.json")) or (match / "metrics.json").is_file():
+                status, why = "done", ""
+            elif outcome.is_file():
+                recorded = json.loads(outcome.read_text())
+                status, why = str(recorded.get("status", "failed")), str(recorded.get("why", ""))
+            else:
+                status, why = "unfinished", f"no metrics.json yet: running, or stopped (see {match.name}/*.log)"
+        cells.append({**job, "status": status, "why": why})
+    return cells
+
+
+def expected_markdown(cells: list[dict]) -> str:
+    statuses = ("done", "skipped", "failed", "unfinished", "missing")
+    counts = {status: sum(cell["status"] == status for cell in cells) for status in statuses}
+    lines = [f"{len(cells)} jobs asked for: " + ", ".join(f"{n} {status}" for status, n in counts.items()) + ".\n"]
+    pending = [cell for cell in cells if cell["status"] != "done"]
+    if pending:
+        keys = [key for key in pending[0] if key not in ("status", "why")]
+        lines += ["| " + " | ".join(keys) + " | status | why |", "|" + "---|" * (len(keys) + 2)]
+        lines += ["| " + " | ".join(str(cell[key]) for key in [*keys, "status", "why"]) + " |" for cell in pending]
+    return "\n".join(lines) + "\n"
+
+
 def _variant_key(variant: str) -> tuple:
     try:
         return (0, float(variant.split("=", 1)[1]))
@@ -156,11 +227,13 @@ def write_report(root: Path, renders: bool = True) -> Path:
         raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
     rows = [row for row in every_row if observed_plainly(row)]
     sensitivity = sensitivity_markdown(every_row)
+    cells = expected_cells(root)
     figures, importance = draw_all(root, root / "figures")
     rendered = render_report(root, root / "renders") if renders else []
     sections = [
         f"# Results under {root}\n\nEvery metrics.json below this folder ({len(every_row)}); figures from the test "
         "split; tables and figures of the recordings as they are, except the sensitivity section.\n",
+        *(["## The sweep's jobs\n", expected_markdown(cells)] if cells else []),
         "## Test position error (widths) / rotation error (rad), val position error beside\n",
         grid_markdown(rows),
         "## Figures\n",

@@ -14,12 +14,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from contactbench import rotations
-from contactbench.errors import ContactbenchError
+from contactbench.errors import NotApplicable
 from contactbench.kinematics import estimate_velocities
 from contactbench.recordings import Recordings
 
 
-class SingleBodyError(ContactbenchError):
+class SingleBodyError(NotApplicable):
     """The hybrid model was handed a dataset with more than one body."""
 
 
