@@ -101,16 +101,24 @@ class ResidualContactModel(ContactModel):
         return correction.corrected(bodies, qpos, qvel, qpos1, qvel1, change, self.contact_margin)
 
 
+def recorded_states(
+    split: Split, trajectory: np.ndarray, frame: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo states qpos [M, K, 7], qvel [M, K, 6] of recorded frames (velocities as recorded, else backward
+    differences)."""
+    velocities = split.velocities if split.velocities is not None else estimate_velocities(split.poses, dt)
+    poses = split.poses[trajectory, frame]
+    qpos = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
+    return qpos, body_frame_velocities(qpos, velocities[trajectory, frame])
+
+
 def transitions(
     split: Split, bodies: Bodies, simulator: MujocoRollouts, parameters: ContactParameters
 ) -> tuple[np.ndarray, np.ndarray]:
     """Features [M K, F] and one-step correction targets [M K, 6] of every transition t -> t + 1 of a split (M of
     them), from the recorded states: what MuJoCo gets wrong per step, for the scale of inputs and outputs."""
-    velocities = split.velocities if split.velocities is not None else estimate_velocities(split.poses, bodies.dt)
     trajectory, frame = np.nonzero(np.arange(split.poses.shape[1] - 1)[None, :] < split.lengths[:, None] - 1)
-    poses = split.poses[trajectory, frame]
-    qpos0 = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
-    qvel0 = body_frame_velocities(qpos0, velocities[trajectory, frame])
+    qpos0, qvel0 = recorded_states(split, trajectory, frame, bodies.dt)
     m, n_bodies = qpos0.shape[:2]
     qpos1, qvel1, diverged = simulator.step(parameters, qpos0.reshape(m, -1), qvel0.reshape(m, -1))
     qpos1, qvel1 = qpos1.reshape(m, n_bodies, 7), qvel1.reshape(m, n_bodies, 6)
@@ -121,14 +129,10 @@ def transitions(
     return inputs.reshape(-1, bodies.n_features), wanted.reshape(-1, 6)
 
 
-def segment_starts(split: Split, first_frames: int | None) -> np.ndarray:
-    """[S, 2] (trajectory, first frame) of the windows a split offers: from every frame with a next one, or only from
-    frame `first_frames - 1` (the protocol's last context frame) when first_frames is given."""
-    frames = np.arange(split.poses.shape[1])[None, :]
-    starts = frames + 1 < split.lengths[:, None]
-    if first_frames is not None:
-        starts &= frames == first_frames - 1
-    return np.argwhere(starts)
+def segment_starts(split: Split) -> np.ndarray:
+    """[S, 2] (trajectory, first frame) of the windows a split offers: one from every frame that has a next one (a
+    window running past its toss's end is scored up to the end)."""
+    return np.argwhere(np.arange(split.poses.shape[1])[None, :] + 1 < split.lengths[:, None])
 
 
 class ResidualDataModule(pl.LightningDataModule):
@@ -139,8 +143,6 @@ class ResidualDataModule(pl.LightningDataModule):
         self,
         dataset: Recordings,
         context_frames: int,
-        unroll: int,
-        from_context: bool = False,
         batch_size: int = 256,
         segments_per_epoch: int = 8192,
         val_segments: int = 1024,
@@ -148,15 +150,13 @@ class ResidualDataModule(pl.LightningDataModule):
     ):
         super().__init__()
         self.dataset = dataset
-        self.unroll = int(unroll)
-        self.first_frames = int(context_frames) if from_context else None
         self.batch_size = int(batch_size)
         self.segments_per_epoch = int(segments_per_epoch)
         self.val_segments = int(val_segments)
         self.seed = int(seed)
 
     def _draw(self, split: str, count: int, rng: np.random.Generator) -> torch.Tensor:
-        starts = segment_starts(self.dataset.split(split), self.first_frames)
+        starts = segment_starts(self.dataset.split(split))
         chosen = starts[np.sort(rng.choice(len(starts), size=min(count, len(starts)), replace=False))]
         return torch.as_tensor(chosen[rng.permutation(len(chosen))])
 
@@ -179,7 +179,7 @@ class ResidualModule(pl.LightningModule):
         sysid: dict,
         hidden: Sequence[int] = (256, 256),
         lr: float = 1e-3,
-        contact_margin: float = 0.02,
+        contact_margin: float = 0.01,
         max_correction: float = 4.0,
         unroll: int = 16,
         seed: int = 0,
@@ -297,12 +297,7 @@ class ResidualModule(pl.LightningModule):
         gradient is that estimate."""
         recorded = self.dataset.split(split)
         trajectory, first = segments[:, 0].cpu().numpy(), segments[:, 1].cpu().numpy()
-        velocities = recorded.velocities
-        if velocities is None:
-            velocities = estimate_velocities(recorded.poses, self.bodies.dt)
-        poses = recorded.poses[trajectory, first]
-        qpos = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
-        qvel = body_frame_velocities(qpos, velocities[trajectory, first])
+        qpos, qvel = recorded_states(recorded, trajectory, first, self.bodies.dt)
         n, n_bodies = qpos.shape[:2]
         nv = 6 * n_bodies
         dt = self.bodies.dt
