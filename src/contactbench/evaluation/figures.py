@@ -220,7 +220,8 @@ def sensitivity_figure(runs: list[Run], dataset: str, variant: str, axis_key: st
         axis.set_xlabel(label)
         axis.set_ylabel(metric)
     axes[0].legend(fontsize=8)
-    against = "the clean recording" if group[0].summary.get("scored_against") == "clean recording" else "the recording"
+    clean = any(run.summary.get("scored_against") == "clean recording" for group in grouped.values() for run in group)
+    against = "the clean recording" if clean else "the recording"
     figure.suptitle(f"{dataset} {variant}: error vs {label.split(' (')[0]} (test, scored against {against})")
     return save_figure(figure, path)
 

@@ -233,7 +233,11 @@ def write_report(root: Path, renders: bool = True) -> Path:
     sections = [
         f"# Results under {root}\n\nEvery metrics.json below this folder ({len(every_row)}); figures from the test "
         "split; tables and figures of the recordings as they are, except the sensitivity section.\n",
-        *(["## The sweep's jobs\n", expected_markdown(cells)] if cells else []),
+        *(
+            ["## The jobs of the last sweep launched here (its multirun.yaml)\n", expected_markdown(cells)]
+            if cells
+            else []
+        ),
         "## Test position error (widths) / rotation error (rad), val position error beside\n",
         grid_markdown(rows),
         "## Figures\n",
