@@ -8,9 +8,9 @@ projection in between. Prints seconds and the ratio. python benchmarks/residual_
 from __future__ import annotations
 
 import argparse
-import time
 
 import torch
+from metrics_speed import best_time  # a sibling script: python benchmarks/... puts benchmarks/ on the path
 
 from contactbench.config import REPO_ROOT
 from contactbench.models.analytical import preset_parameters
@@ -18,15 +18,6 @@ from contactbench.models.residual.module import ResidualContactModel, ResidualMo
 from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 from contactbench.sim.rollout import rollout_context
-
-
-def best_of(repeats: int, run) -> float:
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return min(times)
 
 
 def main() -> None:
@@ -40,11 +31,11 @@ def main() -> None:
     module = ResidualModule(dataset.for_models(["train", "val"]), 6, sysid={})
     module.feature_std.fill_(1.0)  # an untrained network costs what a trained one does
     scene = dataset.for_models()
-    engine = best_of(args.repeats, lambda: rollout_context(scene, context, parameters))
+    engine = best_time(lambda: rollout_context(scene, context, parameters), args.repeats)
     alone = ResidualContactModel(parameters, None, contact_margin=0.01)
-    stepped = best_of(args.repeats, lambda: alone.rollout(scene, context))
+    stepped = best_time(lambda: alone.rollout(scene, context), args.repeats)
     corrected = ResidualContactModel(parameters, module.predict, contact_margin=0.01)
-    full = best_of(args.repeats, lambda: corrected.rollout(scene, context))
+    full = best_time(lambda: corrected.rollout(scene, context), args.repeats)
     frames = int((context.lengths - context.n_context).sum())
     print(f"real cube val: {len(context.lengths)} tosses, {frames} predicted frames; best of {args.repeats}")
     print(f"MuJoCo batched rollout (mujoco.rollout, whole horizon): {engine:.3f} s")
