@@ -100,7 +100,7 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> Observed:
     observation = observation_of(cfg)
     dataset = observation.observe(recorded)
     truth = dataset if recorded.real or observation.plain else observation.clean(recorded)
-    scored_against = "clean recording" if truth is not dataset else "observed recording"
+    scored_against = "observed recording" if recorded.real else "clean recording"
     context_frames = int(cfg.context_frames)
     require_frames(
         dataset,

@@ -252,7 +252,9 @@ def write_report(root: Path, renders: bool = True) -> Path:
             [
                 "## Sensitivity to tracking noise and frame rate (test position / rotation error)\n",
                 "Every observation that was run (`observation.noise_mm`, `observation.frame_stride`); the figures "
-                "above named sensitivity_* draw the same runs with their 25-75% bands.\n",
+                "above named sensitivity_* draw the same runs with their 25-75% bands. At a frame stride n the "
+                "context frames span n times as long, so the predicted part of a toss starts later and is shorter: "
+                "errors across strides are not over the same stretch of time.\n",
                 sensitivity,
             ]
             if sensitivity
