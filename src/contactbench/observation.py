@@ -48,7 +48,8 @@ class Observation:
         if self.frame_stride == 1:
             return dataset
         meta = {**dataset.meta, "dt": dataset.dt * self.frame_stride}
-        return replace(dataset, meta=meta, splits={name: self._thin(split) for name, split in dataset.splits.items()})
+        thinned = {name: split.every(self.frame_stride) for name, split in dataset.splits.items()}
+        return replace(dataset, meta=meta, splits=thinned)
 
     def observe(self, dataset: Recordings) -> Recordings:
         """What the models see: `clean` plus the noise."""
@@ -57,17 +58,6 @@ class Observation:
             return thinned
         noisy = {name: self._noisy(name, split, thinned) for name, split in thinned.splits.items()}
         return replace(thinned, splits=noisy)
-
-    def _thin(self, split: Split) -> Split:
-        n = self.frame_stride
-        lengths = (split.lengths - 1) // n + 1
-        horizon = int(lengths.max()) if len(lengths) else 0
-        velocities = None if split.velocities is None else split.velocities[:, ::n][:, :horizon]
-        extras = {
-            name: value[:, ::n][:, :horizon] if value.shape[:2] == split.poses.shape[:2] else value
-            for name, value in split.extras.items()
-        }
-        return Split(split.poses[:, ::n][:, :horizon], lengths, velocities, extras)
 
     def _noisy(self, name: str, split: Split, dataset: Recordings) -> Split:
         rng = np.random.default_rng([int(self.seed), zlib.crc32(name.encode())])

@@ -70,6 +70,21 @@ class Split:
         velocities = None if self.velocities is None else self.velocities[indices, :horizon]
         return Split(self.poses[indices, :horizon], lengths, velocities, extras)
 
+    def every(self, stride: int) -> Split:
+        """Frames 0, stride, 2 stride, ... of every trajectory (a lower frame rate); per-frame extras alike."""
+        lengths = (self.lengths - 1) // stride + 1
+        horizon = int(lengths.max()) if len(lengths) else 0
+
+        def thin(value: np.ndarray) -> np.ndarray:
+            return value[:, ::stride][:, :horizon]
+
+        velocities = None if self.velocities is None else thin(self.velocities)
+        extras = {
+            name: thin(value) if value.shape[:2] == self.poses.shape[:2] else value
+            for name, value in self.extras.items()
+        }
+        return Split(thin(self.poses), lengths, velocities, extras)
+
     def _select_extra(self, value: np.ndarray, indices: np.ndarray, horizon: int) -> np.ndarray:
         """Per-frame extras ([N, T, ...]) follow poses; per-trajectory ones ([N, ...]) follow lengths; others stay."""
         if value.shape[:2] == self.poses.shape[:2]:

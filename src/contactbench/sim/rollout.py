@@ -301,15 +301,25 @@ def body_frame_energy(dataset: Recordings, poses: np.ndarray, qvel: np.ndarray) 
     properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
     com = np.stack([c for c, _ in properties])
     inertia = np.stack([i for _, i in properties])
-    position, quaternion = poses[..., :3], poses[..., 3:]
+    position = poses[..., :3]
+    if np.any(com):
+        position = position + rotations.rotate(poses[..., 3:], com)
+    height = (position - np.array([0.0, 0.0, dataset.floor_z])) @ dataset.gravity
+    kinetic = kinetic_energies(masses, com, inertia, poses, qvel).sum(axis=-1)
+    return kinetic - np.einsum("k,...k->...", masses, height)
+
+
+def kinetic_energies(
+    masses: np.ndarray, com: np.ndarray, inertia: np.ndarray, poses: np.ndarray, qvel: np.ndarray
+) -> np.ndarray:
+    """[..., K] each body's kinetic energy (J) at poses [..., K, 7] with free-joint velocities qvel [..., K, 6]; masses
+    [K], centres of mass [K, 3] (mesh frame) and inertias about them [K, 3, 3]."""
     linear, angular = qvel[..., :3], qvel[..., 3:]
     if np.any(com):  # meshes written about their centre of mass need no rotation here
-        linear = linear + rotations.rotate(quaternion, np.cross(angular, com))
-        position = position + rotations.rotate(quaternion, com)
-    translational = np.einsum("k,...ki,...ki->...", masses, linear, linear)
-    rotational = np.einsum("...ki,kij,...kj->...", angular, inertia, angular)
-    height = (position - np.array([0.0, 0.0, dataset.floor_z])) @ dataset.gravity
-    return 0.5 * (translational + rotational) - np.einsum("k,...k->...", masses, height)
+        linear = linear + rotations.rotate(poses[..., 3:], np.cross(angular, com))
+    translational = np.einsum("k,...ki,...ki->...k", masses, linear, linear)
+    rotational = np.einsum("...ki,kij,...kj->...k", angular, inertia, angular)
+    return 0.5 * (translational + rotational)
 
 
 def rollout_context(

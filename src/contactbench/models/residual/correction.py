@@ -24,6 +24,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.kinematics import world_vertices
 from contactbench.recordings import Recordings
+from contactbench.sim.rollout import kinetic_energies
 
 LOWEST_VERTICES = 4  # the body's vertices nearest the floor that the features describe (a tetrahedron has four)
 NEIGHBOUR_FEATURES = 7  # relative position and velocity of the nearest other body (body frame), and its distance
@@ -140,12 +141,7 @@ def targets(
 
 def kinetic_energy(bodies: Bodies, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
     """[..., K] kinetic energy of each body (J)."""
-    offset = rotations.rotate(qpos[..., 3:], bodies.com)
-    linear = _point_velocity(qpos, qvel, offset[..., None, :])[..., 0, :]
-    omega = qvel[..., 3:]
-    return 0.5 * bodies.masses * np.einsum("...i,...i->...", linear, linear) + 0.5 * np.einsum(
-        "...ki,kij,...kj->...k", omega, bodies.inertia, omega
-    )
+    return kinetic_energies(bodies.masses, bodies.com, bodies.inertia, qpos, qvel)
 
 
 def allowed_fraction(
