@@ -186,7 +186,7 @@ def test_prefilter_does_not_change_depths_or_touches():
         ],
         axis=-1,
     )
-    geometries = [metrics._convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
+    geometries = [metrics.convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
     tolerance = 0.01
     filtered = metrics._pairwise_separations(poses, geometries, cutoff=tolerance)
     full = np.stack(

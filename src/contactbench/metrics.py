@@ -127,7 +127,7 @@ def lowest_vertex_height(poses, meshes: list[Mesh], floor_z: float) -> np.ndarra
 
 
 @dataclass(frozen=True)
-class _ConvexGeometry:
+class ConvexGeometry:
     """What the separating-axis test needs of one convex mesh, in its body frame."""
 
     vertices: np.ndarray  # [V, 3]
@@ -143,7 +143,7 @@ def _distinct_axes(directions: np.ndarray) -> np.ndarray:
     return directions[~np.tril(similar, k=-1).any(axis=1)]
 
 
-def _convex_geometry(mesh: Mesh, body: int) -> _ConvexGeometry:
+def convex_geometry(mesh: Mesh, body: int) -> ConvexGeometry:
     vertices = np.asarray(mesh.vertices, float)
     faces = np.asarray(mesh.faces, np.int64)
     corners = vertices[faces]
@@ -170,7 +170,7 @@ def _convex_geometry(mesh: Mesh, body: int) -> _ConvexGeometry:
     edge_vectors /= np.linalg.norm(edge_vectors, axis=1, keepdims=True)
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     centre = (low + high) / 2
-    return _ConvexGeometry(
+    return ConvexGeometry(
         vertices=vertices,
         face_normals=_distinct_axes(normals[area2 > 0]),
         edge_directions=_distinct_axes(edge_vectors),
@@ -180,7 +180,7 @@ def _convex_geometry(mesh: Mesh, body: int) -> _ConvexGeometry:
 
 
 def _sat_separation(
-    poses_a: np.ndarray, poses_b: np.ndarray, geometry_a: _ConvexGeometry, geometry_b: _ConvexGeometry
+    poses_a: np.ndarray, poses_b: np.ndarray, geometry_a: ConvexGeometry, geometry_b: ConvexGeometry
 ) -> np.ndarray:
     """Signed separation of two convex bodies at unit-quaternion poses [S, 7] each: max over candidate axes of the gap
     between the bodies' projection intervals, i.e. −(penetration depth) when they overlap; returns [S].
@@ -240,10 +240,10 @@ def pair_separation(poses_a, poses_b, mesh_a: Mesh, mesh_b: Mesh) -> np.ndarray:
     except ValueError:
         raise ValueError(f"poses {poses_a.shape} and {poses_b.shape} do not broadcast") from None
     flat_a, flat_b = (_unit_quaternions(np.broadcast_to(poses, shape).reshape(-1, 7)) for poses in (poses_a, poses_b))
-    return _sat_separation(flat_a, flat_b, _convex_geometry(mesh_a, 0), _convex_geometry(mesh_b, 1)).reshape(shape[:-1])
+    return _sat_separation(flat_a, flat_b, convex_geometry(mesh_a, 0), convex_geometry(mesh_b, 1)).reshape(shape[:-1])
 
 
-def _pairwise_separations(poses: np.ndarray, geometries: list[_ConvexGeometry], cutoff: float) -> np.ndarray:
+def _pairwise_separations(poses: np.ndarray, geometries: list[ConvexGeometry], cutoff: float) -> np.ndarray:
     """Separation of every body pair (itertools.combinations order) at unit-quaternion poses [S, K, 7] → [S, P];
     +inf where it certainly exceeds `cutoff`, which skips the full test for bodies that are far apart.
 
@@ -279,7 +279,7 @@ def interbody_penetration(poses, meshes: list[Mesh]) -> np.ndarray:
     _check_poses_meshes(poses, meshes)
     n_bodies = len(meshes)
     flat = _unit_quaternions(poses.reshape(-1, n_bodies, 7))
-    geometries = [_convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
+    geometries = [convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
     depth = np.zeros((len(flat), n_bodies, n_bodies))
     if n_bodies > 1:
         pair_depth = np.maximum(0.0, -_pairwise_separations(flat, geometries, cutoff=0.0))
@@ -382,7 +382,7 @@ def compute_metrics(
     }
     n_bodies = len(meshes)
     if n_bodies > 1:
-        geometries = [_convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
+        geometries = [convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]
         pred_separations = _pairwise_separations(
             _unit_quaternions(pred_scored), geometries, max(contact_tolerance, 0.0)
         )

@@ -48,6 +48,17 @@ def check_history_fits(context_frames: int, velocity_history: int) -> None:
         )
 
 
+def inertia_per_mass(dataset: Recordings, scene: MeshScene) -> np.ndarray:
+    """Every body's inertia tensor per unit mass about its mesh vertices' centroid, mesh-frame axes [K, 3, 3]."""
+    tensors = []
+    for k, nodes in enumerate(scene.body_slices()):
+        com, inertia = dataset.mass_properties(k)
+        offset = scene.rest_vertices[nodes].mean(axis=0) - com
+        mass = dataset.bodies[k].mass
+        tensors.append(inertia / mass + offset @ offset * np.eye(3) - np.outer(offset, offset))
+    return np.stack(tensors)
+
+
 class StepSeededBatches(Sampler):
     """Batches of window indices drawn uniformly (without replacement inside a batch), batch by batch from a generator
     seeded with (seed, training step): a run resumed from any step, mid-epoch included, draws the batches an
@@ -177,6 +188,9 @@ class GNNModule(pl.LightningModule):
         rollout_batch_size: int = 256,
         rigid: bool = False,
         contact_distance_fraction: float = 0.25,
+        separate_bodies: bool = False,
+        floor_gate_fraction: float | None = None,
+        solid_inertia: bool = False,
         lr_schedule: str = "constant",
         seed: int = 0,
     ):
@@ -200,7 +214,13 @@ class GNNModule(pl.LightningModule):
         if rigid:
             contact_distance = contact_distance_fraction * float(np.max(scene.widths))
             self.simulator = RigidLearnedSimulator(
-                scene, gravity=dataset.gravity, contact_distance=contact_distance, **options
+                scene,
+                gravity=dataset.gravity,
+                contact_distance=contact_distance,
+                separate_bodies=separate_bodies,
+                solid_inertia=inertia_per_mass(dataset, scene) if solid_inertia else None,
+                floor_gate=None if floor_gate_fraction is None else floor_gate_fraction * float(np.max(scene.widths)),
+                **options,
             )
         else:
             self.simulator = LearnedSimulator(scene, **options)
