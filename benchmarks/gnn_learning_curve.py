@@ -28,10 +28,13 @@ MODELS = ("gnn", "gnn_paper")
 def curve(run_dir: Path) -> list[tuple[float, float, float]]:
     """(training seconds, val rollout position error, val rollout rotation error) at every validation of a run."""
     with open(run_dir / "csv" / "metrics.csv", newline="") as handle:
-        rows = [row for row in csv.DictReader(handle) if row.get("val/rollout_pos_err") and row.get("train/seconds")]
+        rows = list(csv.DictReader(handle))
+    # runs logged before the one selection callback (ValRollouts) named the keys val/rollout_{pos,rot}_err
+    prefix = "val/" if any(row.get("val/pos_err") for row in rows) else "val/rollout_"
     return [
-        (float(row["train/seconds"]), float(row["val/rollout_pos_err"]), float(row["val/rollout_rot_err"]))
+        (float(row["train/seconds"]), float(row[f"{prefix}pos_err"]), float(row[f"{prefix}rot_err"]))
         for row in rows
+        if row.get(f"{prefix}pos_err") and row.get("train/seconds")
     ]
 
 
@@ -78,7 +81,7 @@ def main() -> None:
             )
     with open(args.out / "curves.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["model", "dataset", "train_seconds", "val_rollout_pos_err", "val_rollout_rot_err"])
+        writer.writerow(["model", "dataset", "train_seconds", "val_pos_err", "val_rot_err"])
         for (model, dataset), points in curves.items():
             writer.writerows([model, dataset, *point] for point in points)
     print(f"wrote {learning_curve_figure(curves, args.out / 'learning_curves.png')} and {args.out / 'curves.csv'}")

@@ -20,6 +20,7 @@ from contactbench.models.gnn.module import GNNDataModule, GNNModule, VertexWindo
 from contactbench.models.gnn.network import InteractionLayer
 from contactbench.models.gnn.shape_matching import fit_rigid_transform, poses_from_vertices, project_to_rigid
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator, random_walk_noise
+from contactbench.models.selection import ValRollouts, rollout_errors
 from contactbench.protocol import make_context
 from contactbench.recordings import Recordings, Split, read_recordings
 
@@ -302,12 +303,12 @@ def test_training_steps_reduce_the_loss_on_a_fixed_batch():
 def test_trainer_checkpoints_reload_and_roll_out(tmp_path, n_bodies):
     pl.seed_everything(0)
     recordings = falling_cubes(n_trajectories=4, n_frames=16, n_bodies=n_bodies)
-    module = GNNModule(recordings, context_frames=6, val_rollouts=2, **TINY)
-    checkpoint = ModelCheckpoint(dirpath=tmp_path, monitor="val/rollout_pos_err", mode="min", save_last=True)
+    module = GNNModule(recordings, context_frames=6, **TINY)
+    checkpoint = ModelCheckpoint(dirpath=tmp_path, monitor="val/pos_err", mode="min", save_last=True)
     options = dict(
         val_check_interval=10,
         check_val_every_n_epoch=None,
-        callbacks=[checkpoint],
+        callbacks=[ValRollouts(trajectories=2), checkpoint],
         logger=False,
         enable_progress_bar=False,
         enable_model_summary=False,
@@ -316,7 +317,8 @@ def test_trainer_checkpoints_reload_and_roll_out(tmp_path, n_bodies):
     trainer = pl.Trainer(max_steps=20, **options)
     trainer.fit(module, datamodule=GNNDataModule(recordings, context_frames=6))
     assert trainer.global_step == 20
-    assert np.isfinite(trainer.callback_metrics["val/rollout_pos_err"].item())
+    assert np.isfinite(trainer.callback_metrics["val/pos_err"].item())
+    assert np.isfinite(trainer.callback_metrics["val/rot_err"].item())
     assert "val/one_step_loss" in trainer.callback_metrics
     best = GNNModule.load_from_checkpoint(checkpoint.best_model_path, dataset=recordings, weights_only=True)
     assert best.hparams.latent_size == 16 and bool(best.simulator.normalisation_fitted)
@@ -332,7 +334,7 @@ def test_trainer_checkpoints_reload_and_roll_out(tmp_path, n_bodies):
 
     resumed = pl.Trainer(max_steps=24, **options)
     resumed.fit(
-        GNNModule(recordings, context_frames=6, val_rollouts=2, **TINY),
+        GNNModule(recordings, context_frames=6, **TINY),
         datamodule=GNNDataModule(recordings),
         ckpt_path=checkpoint.last_model_path,
     )
@@ -348,10 +350,10 @@ def test_runs_on_the_real_cube_with_variable_lengths():
     windows = VertexWindows(small.split("train"), MeshScene.from_recordings(small), 7)
     assert len(windows) == int(np.sum(small.split("train").lengths - 6))
     assert torch.all(torch.isfinite(windows[np.arange(len(windows))]))
-    module = GNNModule(small, val_rollouts=3, **TINY)
+    module = GNNModule(small, **TINY)
     module.setup("fit")
     assert module.simulator.floor_z == real.floor_z and module.simulator.radius == pytest.approx(0.8 * 0.1048)
-    errors = module.validation_rollout_errors()
+    errors = rollout_errors(module.to_contact_model(), small, "val", 6, trajectories=3)
     assert np.isfinite(errors["pos_err"]) and errors["pos_err"] > 0
     context = make_context(small.split("val"), small.dt, 6)
     predicted = module.to_contact_model().rollout(small, context)

@@ -205,7 +205,7 @@ def test_gnn_paper_composes_with_the_papers_values():
         5,
     )
     assert datamodule.batch_size == 64 and cfg.model.trainer.max_steps == 1_000_000
-    assert cfg.model.callbacks.checkpoint.monitor == "val/rollout_pos_err"
+    assert cfg.model.callbacks.checkpoint.monitor == "val/pos_err"
 
 
 @pytest.mark.parametrize("budget", ["smoke", "quick", "paper"])
@@ -326,8 +326,8 @@ def test_the_csv_log_keeps_its_rows_across_a_resume(tmp_path):
     logger.save()
     drop_rows_from_step(tmp_path, 2)  # resuming from step 2: that step is logged again
     again = ResumableCSVLogger(save_dir=tmp_path, name="csv", version="")
-    again.log_metrics({"train/loss": 0.4, "val/rollout_pos_err": 0.3}, step=2)
+    again.log_metrics({"train/loss": 0.4, "val/pos_err": 0.3}, step=2)
     again.save()
     rows = list(csv.DictReader(open(tmp_path / "csv" / "metrics.csv")))
     assert [(row["step"], row["train/loss"]) for row in rows] == [("1", "1.0"), ("2", "0.4")]
-    assert rows[1]["val/rollout_pos_err"] == "0.3"
+    assert rows[1]["val/pos_err"] == "0.3"

@@ -25,6 +25,7 @@ from contactbench.models.hybrid import (
 )
 from contactbench.models.hybrid.dynamics import State
 from contactbench.models.hybrid.module import training_arrays
+from contactbench.models.selection import ValRollouts
 from contactbench.protocol import make_context
 from contactbench.recordings import FORMAT, VERSION, Recordings, Split
 
@@ -493,10 +494,10 @@ def test_tiny_training_run_checkpoints_reloads_and_rolls_out(tmp_path):
     recordings = cube_recordings(splits)
     datamodule = HybridDataModule(recordings, context_frames=6, batch_size=64)
     module = HybridModule(recordings, context_frames=6, hidden=(32, 16, 8))
-    checkpoint = ModelCheckpoint(dirpath=tmp_path, monitor="val/loss", save_last=True)
+    checkpoint = ModelCheckpoint(dirpath=tmp_path, monitor="val/pos_err", save_last=True)
     trainer = pl.Trainer(
         max_epochs=3,
-        callbacks=[EarlyStopping("val/loss", patience=12), checkpoint],
+        callbacks=[ValRollouts(), EarlyStopping("val/pos_err", patience=12), checkpoint],
         logger=False,
         enable_progress_bar=False,
         enable_model_summary=False,
@@ -504,7 +505,7 @@ def test_tiny_training_run_checkpoints_reloads_and_rolls_out(tmp_path):
     )
     trainer.fit(module, datamodule=datamodule)
     assert checkpoint.best_model_path and (tmp_path / "last.ckpt").exists()
-    assert np.isfinite(float(trainer.callback_metrics["val/pos_err"]))  # the val rollout the configs select on
+    assert np.isfinite(float(trainer.callback_metrics["val/pos_err"]))  # the val rollout the config selects on
     statistics = datamodule.statistics
     assert float(statistics["target_std"][0]) > 0.1  # friction along the body axes is really there to learn
 

@@ -3,11 +3,9 @@
 `GNNDataModule` serves windows of H + 2 consecutive frames of world vertex positions (H + 1 inputs and the next
 frame), sampled uniformly over all valid windows of the train split, batch 64 (paper); its validation loader serves a
 fixed, evenly spaced subset of the val split's windows for the one-step loss. `GNNModule` trains with Adam at
-lr 1e-4 (paper) on the noisy one-step loss; at each validation it also rolls out a fixed, evenly spaced subset of
-`val_rollouts` val trajectories from the shared protocol's context (`make_context`) and logs
-`val/rollout_pos_err` (position error / width, mean over the predicted frames of each trajectory, then over
-trajectories, as `metrics.compute_metrics` averages), the quantity models are selected on (paper), plus
-`val/rollout_rot_err` (rad) and `val/one_step_loss`. The test split is never read here.
+lr 1e-4 (paper) on the noisy one-step loss and logs `val/one_step_loss`; models are selected on val rollouts
+(paper) by the configured `models.selection.ValRollouts` callback, as every Lightning-trained model is. The test
+split is never read here.
 Normalisation statistics are computed from the train split when fitting starts and live in buffers, so
 `GNNModule.load_from_checkpoint(path, dataset=recordings, weights_only=True)` restores a usable model.
 """
@@ -22,22 +20,14 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, Sampler, SequentialSampler
 
-from contactbench.metrics import position_error, rotation_error
 from contactbench.models.base import ContactModel
 from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, MeshScene, collision_radius
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
-from contactbench.protocol import make_context, scored_frames, trajectory_means
+from contactbench.models.selection import evenly_spaced
 from contactbench.recordings import Recordings, Split
 
 LR_SCHEDULES = ("constant", "cosine")
-
-
-def evenly_spaced(count: int, chosen: int | None) -> np.ndarray:
-    """`chosen` indices spread evenly over range(count) (all of them when chosen is None or not smaller)."""
-    if chosen is None or chosen >= count:
-        return np.arange(count)
-    return np.unique(np.linspace(0, count - 1, chosen).round().astype(np.int64))
 
 
 def check_history_fits(context_frames: int, velocity_history: int) -> None:
@@ -183,7 +173,6 @@ class GNNModule(pl.LightningModule):
         noise_std: float = 3e-4,
         velocity_history: int = 5,
         collision_radius_fraction: float = DEFAULT_COLLISION_RADIUS_FRACTION,
-        val_rollouts: int | None = 16,
         per_step_projection: bool = False,
         rollout_batch_size: int = 256,
         rigid: bool = False,
@@ -254,37 +243,15 @@ class GNNModule(pl.LightningModule):
     def on_train_start(self) -> None:
         self._clock = {"started": time.perf_counter(), "validating": 0.0, "validation_started": 0.0}
 
-    def on_validation_epoch_start(self) -> None:
+    def on_validation_start(self) -> None:  # before every callback's validation-epoch hooks (the val rollouts)
         if hasattr(self, "_clock"):
             self._clock["validation_started"] = time.perf_counter()
-        # Rolled out here, not at epoch end: a weight-averaging callback swaps its average in before this hook and
-        # back out before the module's epoch end, and the average is what the checkpoint keeps.
-        self._rollout_errors = self.validation_rollout_errors()
 
     def on_validation_epoch_end(self) -> None:
-        errors = self._rollout_errors
-        self.log("val/rollout_pos_err", errors["pos_err"], prog_bar=True)
-        self.log("val/rollout_rot_err", errors["rot_err"])
         if hasattr(self, "_clock"):  # training seconds in this process, validation excluded: learning curves' x-axis
             clock = self._clock
             self.log("train/seconds", clock["validation_started"] - clock["started"] - clock["validating"])
             clock["validating"] += time.perf_counter() - clock["validation_started"]
-
-    def validation_rollout_errors(self) -> dict[str, float]:
-        """Mean position (/ width) and rotation (rad) errors of rollouts of the chosen val trajectories."""
-        split = self.dataset.split("val")
-        context_frames = self.hparams.context_frames
-        long_enough = np.flatnonzero(split.lengths > context_frames)
-        chosen = split.select(long_enough[evenly_spaced(len(long_enough), self.hparams.val_rollouts)])
-        context = make_context(chosen, self.dataset.dt, context_frames)
-        predicted = self.to_contact_model().rollout(self.dataset, context)
-        recorded = chosen.poses[:, : context.horizon]
-        scored = scored_frames(chosen.lengths, context.horizon, context_frames)
-        per_frame = {
-            "pos_err": position_error(recorded, predicted, self.dataset.widths()).mean(axis=-1),
-            "rot_err": rotation_error(recorded, predicted).mean(axis=-1),
-        }
-        return {name: float(trajectory_means(values, scored).mean()) for name, values in per_frame.items()}
 
     def to_contact_model(self) -> ContactModel:
         if not bool(self.simulator.normalisation_fitted):

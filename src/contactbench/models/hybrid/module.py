@@ -8,8 +8,9 @@ friction wrench (only for bodies near the floor, the transitions the regressor w
 is no friction), keep it from adding energy (`lcp.dissipative_friction`), solve the frictionless LCP for the normal
 impulses at the vertices, integrate (`lcp.frictionless_step`).
 
-Model selection rolls the model out on the val split after every val epoch and logs its position error as
-`val/pos_err` (the configs early-stop and checkpoint on it). The one-step loss is a poor proxy there: it is dominated
+Model selection rolls the model out on the val split at every validation (`models.selection.ValRollouts`, as for every
+Lightning-trained model) and logs its position error as `val/pos_err` (the config early-stops and checkpoints on it).
+The one-step loss is a poor proxy there: it is dominated
 by impacts, which the data (PyBullet, whose contacts penetrate and push out over several steps) resolve differently
 from our one-step LCP, and on frictioncubes (mu = 0.5) the rollout error was lowest after a few epochs and grew while
 val/loss kept falling (0.46 -> 1.1 cube widths over 40 epochs).
@@ -25,7 +26,6 @@ import torch
 from torch import nn
 from torch.utils.data import BatchSampler, DataLoader, RandomSampler, SequentialSampler, TensorDataset
 
-from contactbench.evaluation.scoring import score_model
 from contactbench.models.base import ContactModel
 from contactbench.models.hybrid import dynamics, features, inverse, lcp
 from contactbench.models.hybrid.dynamics import Scene, State
@@ -135,6 +135,7 @@ class HybridModule(pl.LightningModule):
         _check_context_frames(context_frames)
         hidden = tuple(int(width) for width in hidden)  # plain ints: a checkpoint must open with weights_only=True
         self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
+        self.dataset = dataset  # val rollouts select the model (ValRollouts)
         self.settings = ContactSettings(
             contact_margin=contact_margin, stabilisation=stabilisation, restitution=restitution
         )
@@ -161,7 +162,6 @@ class HybridModule(pl.LightningModule):
             )
         for name, value in datamodule.statistics.items():
             getattr(self, name).copy_(value)
-        self.selection_dataset = datamodule.dataset
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
         """Body-frame friction wrench [B, 6] (N, N m) from features [B, 9 + V]."""
@@ -179,20 +179,6 @@ class HybridModule(pl.LightningModule):
 
     def validation_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_index: int) -> None:
         self.log("val/loss", self._loss(batch), on_step=False, on_epoch=True, prog_bar=True, batch_size=len(batch[0]))
-
-    def on_validation_epoch_end(self) -> None:
-        if self.trainer.sanity_checking:
-            return
-        dataset = self.selection_dataset
-        score = score_model(
-            self.to_contact_model(),
-            dataset,
-            "val",
-            self.hparams.context_frames,
-            dataset_name=dataset.name,
-            variant="selection",
-        )
-        self.log("val/pos_err", score.metrics.summary["pos_err"], prog_bar=True)
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)

@@ -14,10 +14,10 @@ budget=quick, val split: on the real cube it halved the one-step error and made 
 states instead of recorded ones (DAgger-style) rotation improved on the real cube (0.41 -> 0.35-0.37 rad) and
 position still got worse (0.27-0.35). Every variant's rollout error rose while its regression loss fell.
 
-Selection is on the val split's rollout position error after every epoch (checkpoint and early stopping on
-`val/pos_err`). The identified MuJoCo alone is scored on val too: if no epoch beats it, the fitted model is MuJoCo
-without the correction (fitted.json says `correction_used: false`), so the residual model is never selected worse
-than SysID on val.
+Selection is on the val split's rollout position error after every epoch (`models.selection.ValRollouts`, as for
+every Lightning-trained model; checkpoint and early stopping on `val/pos_err`). The identified MuJoCo alone is
+scored on val too: if no epoch beats it, the fitted model is MuJoCo without the correction (fitted.json says
+`correction_used: false`), so the residual model is never selected worse than SysID on val.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ from torch.utils.data import DataLoader
 
 from contactbench import rotations
 from contactbench.config import generations
-from contactbench.evaluation.scoring import score_model
 from contactbench.kinematics import estimate_velocities
 from contactbench.models.base import ContactModel
 from contactbench.models.residual import correction
 from contactbench.models.residual.correction import Bodies, Predictor
+from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import Context
@@ -230,7 +230,8 @@ class ResidualModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         if not torch.isfinite(self.parameters_vector).all():
             self.parameters_vector.copy_(torch.as_tensor(self._identify(), dtype=torch.float64))
-            self.sysid_val_pos_err.fill_(self._val_pos_err(None))
+            alone = rollout_errors(self._contact_model(None), self.dataset, "val", self.hparams.context_frames)
+            self.sysid_val_pos_err.fill_(alone["pos_err"])
             log.info(
                 "residual: SysID identified %s (val pos_err %.4f without the correction)",
                 self.space.describe(self.identified),
@@ -380,26 +381,19 @@ class ResidualModule(pl.LightningModule):
     def validation_step(self, batch: torch.Tensor, batch_index: int) -> None:
         self.log("val/loss", self.rollout_loss("val", batch), on_step=False, on_epoch=True, batch_size=len(batch))
 
-    def on_validation_epoch_end(self) -> None:
-        if self.trainer.sanity_checking:
-            return
-        self.val_pos_err.fill_(self._val_pos_err(self.predict))
-        self.log("val/pos_err", float(self.val_pos_err), prog_bar=True)
+    def record_selection(self, errors: dict[str, float]) -> None:
+        """ValRollouts' scores of the corrected model: kept with the checkpoint, beside MuJoCo alone's."""
+        self.val_pos_err.fill_(errors["pos_err"])
         self.log("val/sysid_pos_err", float(self.sysid_val_pos_err))
 
-    def _val_pos_err(self, predict: Predictor | None) -> float:
-        model = ResidualContactModel(
-            self.identified,
-            predict,
-            self.hparams.contact_margin,
-            self.hparams.substeps,
-            self.hparams.nthread,
+    def selection_candidate(self) -> ResidualContactModel:
+        """What val rollouts score: the correction, even while MuJoCo alone is ahead."""
+        return self._contact_model(self.predict)
+
+    def _contact_model(self, predict: Predictor | None) -> ResidualContactModel:
+        return ResidualContactModel(
+            self.identified, predict, self.hparams.contact_margin, self.hparams.substeps, self.hparams.nthread
         )
-        dataset = self.dataset
-        score = score_model(
-            model, dataset, "val", self.hparams.context_frames, dataset_name=dataset.name, variant="selection"
-        )
-        return float(score.metrics.summary["pos_err"])
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         return torch.optim.Adam(self.network.parameters(), lr=self.hparams.lr)
@@ -419,13 +413,7 @@ class ResidualModule(pl.LightningModule):
         return bool(self.val_pos_err < self.sysid_val_pos_err)
 
     def to_contact_model(self) -> ResidualContactModel:
-        return ResidualContactModel(
-            self.identified,
-            self.predict if self.corrects else None,
-            self.hparams.contact_margin,
-            self.hparams.substeps,
-            self.hparams.nthread,
-        )
+        return self._contact_model(self.predict if self.corrects else None)
 
     def fitted_summary(self) -> dict:
         return {
