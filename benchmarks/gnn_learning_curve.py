@@ -28,13 +28,13 @@ MODELS = ("gnn", "gnn_paper")
 def curve(run_dir: Path) -> list[tuple[float, float, float]]:
     """(training seconds, val rollout position error, val rollout rotation error) at every validation of a run."""
     with open(run_dir / "csv" / "metrics.csv", newline="") as handle:
-        rows = list(csv.DictReader(handle))
+        rows = [row for row in csv.DictReader(handle) if row.get("train/seconds")]  # the validations
     # runs logged before the one selection callback (ValRollouts) named the keys val/rollout_{pos,rot}_err
     prefix = "val/" if any(row.get("val/pos_err") for row in rows) else "val/rollout_"
     return [
         (float(row["train/seconds"]), float(row[f"{prefix}pos_err"]), float(row[f"{prefix}rot_err"]))
         for row in rows
-        if row.get(f"{prefix}pos_err") and row.get("train/seconds")
+        if row.get(f"{prefix}pos_err")
     ]
 
 
