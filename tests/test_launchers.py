@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from hydra import compose, initialize_config_dir
-from test_pipeline import run_entry_point
+from test_pipeline import smoke_train_sweep
 
 from contactbench.config import CONFIG_DIR
 
@@ -17,18 +17,9 @@ def test_cluster_and_local_launcher_configs_compose():
 
 
 def test_a_sweep_runs_through_submitit_local(tmp_path):
-    result = run_entry_point(
-        "train.py",
-        [
-            "-m",
-            "hydra/launcher=submitit_local",
-            "model=mujoco_default",
-            "variant=frictioncubes_0,frictioncubes_1",
-            "budget=smoke",
-            "test=true",
-            "generation.split_sizes={train:6,val:4,test:4}",
-            f"hydra.sweep.dir={tmp_path}/sweep",
-        ],
+    result = smoke_train_sweep(
+        ["hydra/launcher=submitit_local", "model=mujoco_default", "variant=frictioncubes_0,frictioncubes_1"],
+        tmp_path / "sweep",
         tmp_path,
         timeout=300,
     )

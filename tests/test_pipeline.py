@@ -55,6 +55,23 @@ def run_entry_point(script: str, overrides: list[str], tmp_path: Path, timeout: 
     )
 
 
+def smoke_train_sweep(overrides: list[str], sweep_dir: Path, tmp_path: Path, timeout: float = 400):
+    """`train.py -m` over the overrides at budget=smoke, on freshly generated 6/4/4-toss splits, scored on test."""
+    return run_entry_point(
+        "train.py",
+        [
+            "-m",
+            *overrides,
+            "budget=smoke",
+            "test=true",
+            "generation.split_sizes={train:6,val:4,test:4}",
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        tmp_path,
+        timeout=timeout,
+    )
+
+
 def test_evaluate_analytical_baselines_on_real_cube(tmp_path):
     for overrides in (["model=mujoco_default"], ["model=mujoco_fixed", "model.preset=acosta2022"]):
         cfg = compose_config("evaluate", ["dataset=contactnets_cube", *overrides], tmp_path)

@@ -6,25 +6,14 @@ import json
 import re
 import shutil
 
-from test_pipeline import run_entry_point
+from test_pipeline import smoke_train_sweep
 
 from contactbench.evaluation.report import expected_cells, write_report
 
 
 def test_tiny_matrix_multirun_then_report(tmp_path):
-    result = run_entry_point(
-        "train.py",
-        [
-            "-m",
-            "model=mujoco_default,sysid",
-            "variant=frictioncubes_0,frictioncubes_1",
-            "budget=smoke",
-            "test=true",
-            "generation.split_sizes={train:6,val:4,test:4}",
-            f"hydra.sweep.dir={tmp_path}/sweep",
-        ],
-        tmp_path,
-        timeout=400,
+    result = smoke_train_sweep(
+        ["model=mujoco_default,sysid", "variant=frictioncubes_0,frictioncubes_1"], tmp_path / "sweep", tmp_path
     )
     assert result.returncode == 0, result.stderr[-3000:]
     documents = [json.loads(path.read_text()) for path in (tmp_path / "sweep").rglob("metrics.json")]
@@ -57,20 +46,7 @@ def test_tiny_matrix_multirun_then_report(tmp_path):
 
 def test_the_report_accounts_for_every_job_the_sweep_asked_for(tmp_path):
     sweep = tmp_path / "sweep"
-    result = run_entry_point(
-        "train.py",
-        [
-            "-m",
-            "model=mujoco_default,hybrid",
-            "variant=multicubes_2,frictioncubes_0",
-            "budget=smoke",
-            "test=true",
-            "generation.split_sizes={train:6,val:4,test:4}",
-            f"hydra.sweep.dir={sweep}",
-        ],
-        tmp_path,
-        timeout=400,
-    )
+    result = smoke_train_sweep(["model=mujoco_default,hybrid", "variant=multicubes_2,frictioncubes_0"], sweep, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     gone = next(sweep.glob("*model=mujoco_default*variant=frictioncubes_0"))
     shutil.rmtree(gone)  # as if the sweep had stopped before this job
