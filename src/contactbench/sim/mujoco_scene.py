@@ -117,6 +117,15 @@ class ContactParameters:
         return (-self.floor_stiffness, -self.floor_damping)
 
 
+def inertials(dataset: Recordings, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray]:
+    """Every body's centre of mass [K, 3] (mesh frame) and inertia tensor about it [K, 3, 3] in the scene with
+    `effects` (an offset centre of mass, scaled inertias)."""
+    root_scale = np.sqrt(np.array(effects.inertia_scale))
+    properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
+    coms = np.stack([com + np.array(effects.com_offset) for com, _ in properties])
+    return coms, np.stack([root_scale[:, None] * inertia * root_scale[None, :] for _, inertia in properties])
+
+
 def _numbers(values) -> str:
     return " ".join(repr(float(x)) for x in np.ravel(values))
 
@@ -137,12 +146,10 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
         for path, name in mesh_names.items()
     ]
     effects = params.effects
-    root_scale = np.sqrt(np.array(effects.inertia_scale))
+    coms, inertias = inertials(dataset, effects)
     bodies, pairs = [], []
     for k, body in enumerate(dataset.bodies):
-        com, inertia = dataset.mass_properties(k)
-        com = com + np.array(effects.com_offset)
-        inertia = root_scale[:, None] * inertia * root_scale[None, :]
+        com, inertia = coms[k], inertias[k]
         full_inertia = (inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2])
         bodies.append(
             f'<body name="body{k}"><freejoint name="joint{k}"/>'

@@ -24,9 +24,12 @@ from contactbench import rotations
 from contactbench.protocol import Context
 from contactbench.recordings import Recordings
 from contactbench.sim.mujoco_scene import (
+    NO_EFFECTS,
     ContactParameters,
+    SceneEffects,
     body_frame_velocities,
     build_model,
+    inertials,
     pack_state,
     world_velocities,
 )
@@ -222,9 +225,14 @@ class MujocoRollouts:
         poses[diverged] = np.nan
         qvel[diverged] = np.nan
         with np.errstate(invalid="ignore", over="ignore"):
-            energy = body_frame_energy(self.dataset, poses, qvel)
+            # Each parameter set's energy with its own mass properties and gravity: measured with the recordings'
+            # ones, an offset centre of mass gains "energy" in free flight and a correct model reads as blown up.
+            energy = np.stack(
+                [body_frame_energy(self.dataset, poses[b], qvel[b], p.effects) for b, p in enumerate(parameter_sets)]
+            )
+            allowed = np.stack([self._allowed_energy(poses0, velocities0, p.effects) for p in parameter_sets])
             # MuJoCo resets on NaN or |x| > 1e10, so non-finite energy only flags the frames set to NaN above.
-            gained = ~(energy <= self._allowed_energy(poses0, velocities0)[:, None])
+            gained = ~(energy <= allowed[:, :, None])
             sunk = (poses[..., 2] < self.dataset.floor_z - self._sunk_depth).any(axis=-1)
         return SimulationResult(poses, qvel, np.maximum.accumulate(diverged | gained | sunk, axis=-1))
 
@@ -260,9 +268,9 @@ class MujocoRollouts:
         new_qvel[diverged] = np.nan
         return new_qpos, new_qvel, diverged
 
-    def _allowed_energy(self, poses0: np.ndarray, velocities0: np.ndarray) -> np.ndarray:
+    def _allowed_energy(self, poses0: np.ndarray, velocities0: np.ndarray, effects: SceneEffects) -> np.ndarray:
         initial = mechanical_energy(
-            self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64)
+            self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64), effects
         )
         return ENERGY_GAIN * initial + ENERGY_SLACK * sum(body.mass for body in self.dataset.bodies)
 
@@ -289,22 +297,24 @@ def structure_key(model: mujoco.MjModel) -> tuple:
     return (int(model.nC), tuple(model.body_simple.tolist()), tuple(model.dof_simplenum.tolist()))
 
 
-def mechanical_energy(dataset: Recordings, poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
-    """Kinetic + gravitational energy (J, zero at the floor) of the scene at poses [..., K, 7], velocities [..., K,
-    6]."""
-    return body_frame_energy(dataset, poses, body_frame_velocities(poses, velocities))
+def mechanical_energy(
+    dataset: Recordings, poses: np.ndarray, velocities: np.ndarray, effects: SceneEffects = NO_EFFECTS
+) -> np.ndarray:
+    """Kinetic + gravitational energy (J, zero at the floor) of the scene with `effects` at poses [..., K, 7],
+    velocities [..., K, 6]."""
+    return body_frame_energy(dataset, poses, body_frame_velocities(poses, velocities), effects)
 
 
-def body_frame_energy(dataset: Recordings, poses: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+def body_frame_energy(
+    dataset: Recordings, poses: np.ndarray, qvel: np.ndarray, effects: SceneEffects = NO_EFFECTS
+) -> np.ndarray:
     """mechanical_energy from MuJoCo's free-joint velocities qvel [..., K, 6] (angular part in the body frame)."""
     masses = np.array([body.mass for body in dataset.bodies])
-    properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
-    com = np.stack([c for c, _ in properties])
-    inertia = np.stack([i for _, i in properties])
+    com, inertia = inertials(dataset, effects)
     position = poses[..., :3]
     if np.any(com):
         position = position + rotations.rotate(poses[..., 3:], com)
-    height = (position - np.array([0.0, 0.0, dataset.floor_z])) @ dataset.gravity
+    height = (position - np.array([0.0, 0.0, dataset.floor_z])) @ (np.asarray(dataset.gravity) * effects.gravity_scale)
     kinetic = kinetic_energies(masses, com, inertia, poses, qvel).sum(axis=-1)
     return kinetic - np.einsum("k,...k->...", masses, height)
 
