@@ -4,7 +4,9 @@ In free flight the centre of mass obeys x'' = g exactly, so the second differenc
 dt^2 measures the acceleration the recordings actually show, with no simulator and no fitted parameter. A
 vertical acceleration other than meta.gravity means the recordings' time base or length scale is off (a true frame
 interval of sqrt(a / g) dt, or positions scaled by a / g), or meta.gravity itself is wrong; MuJoCo can express all
-three as a scaled gravity (library effect `gravity_scale`). Fit on train, decide on val, confirm on test.
+three as a scaled gravity (library effect `gravity_scale`). Fit on train, decide on val, confirm on test. Only an
+acceleration that is the same for every frame is an apparent gravity: one that grows with speed (air drag, wind) or
+points across gravity is a force, and the diagnosis must find it elsewhere.
 """
 
 from __future__ import annotations
@@ -47,10 +49,8 @@ def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
     return free
 
 
-def centre_accelerations(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
-    """Per trajectory: the summed free-flight accelerations of the centres of mass [N, 3] (m/s^2) and their count
-    [N]."""
-    free = free_frames(dataset, split)
+def centre_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference velocities and accelerations of the centres of mass [N, T, K, 3] (zero at the ends)."""
     poses = np.nan_to_num(split.poses)
     centres = np.stack(
         [
@@ -59,10 +59,41 @@ def centre_accelerations(dataset: Recordings, split: Split) -> tuple[np.ndarray,
         ],
         axis=2,
     )  # [N, T, K, 3]
-    acceleration = np.zeros_like(centres)
+    velocity, acceleration = np.zeros_like(centres), np.zeros_like(centres)
+    velocity[:, 1:-1] = (centres[:, 2:] - centres[:, :-2]) / (2 * dataset.dt)
     acceleration[:, 1:-1] = (centres[:, 2:] - 2 * centres[:, 1:-1] + centres[:, :-2]) / dataset.dt**2
-    sums = np.einsum("ntk,ntki->ni", free.astype(float), acceleration)
+    return velocity, acceleration
+
+
+def centre_accelerations(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
+    """Per trajectory: the summed free-flight accelerations of the centres of mass [N, 3] (m/s^2) and their count
+    [N]."""
+    free = free_frames(dataset, split)
+    sums = np.einsum("ntk,ntki->ni", free.astype(float), centre_motion(dataset, split)[1])
     return sums, free.sum(axis=(1, 2))
+
+
+def gravity_like(dataset: Recordings, split: Split) -> dict:
+    """Whether the free-flight acceleration is a gravity (the same for every frame) rather than a force that depends
+    on the motion: the part along gravity that grows as drag does, k |v| (v . down) fitted by least squares, at the
+    median such value, and the mean part across gravity, each against MARGIN of |meta.gravity|. A wrong time base or
+    length scale scales the whole acceleration; air drag, wind, or frames resting on a tilted floor do not."""
+    free = free_frames(dataset, split)
+    velocity, acceleration = (part[free] for part in centre_motion(dataset, split))  # [F, 3]
+    gravity = np.asarray(dataset.gravity, dtype=float)
+    g = float(np.linalg.norm(gravity))
+    down = gravity / g
+    along = acceleration @ down
+    drag_like = -np.linalg.norm(velocity, axis=-1) * (velocity @ down)
+    design = np.stack([np.ones_like(drag_like), drag_like], axis=1)
+    (_, slope), *_ = np.linalg.lstsq(design, along, rcond=None)
+    speed_term = float(abs(slope) * np.median(np.abs(drag_like)))
+    across = float(np.linalg.norm(acceleration.mean(axis=0) - (acceleration.mean(axis=0) @ down) * down))
+    return {
+        "speed_dependent_m_s2": speed_term,
+        "across_gravity_m_s2": across,
+        "gravity_like": bool(speed_term < MARGIN * g and across < MARGIN * g),
+    }
 
 
 def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: int, confidence: float = 0.95) -> dict:
@@ -118,7 +149,11 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
     differs = bool((low > 1 or high < 1) and abs(val["scale"] - 1) >= MARGIN)
     test_low, test_high = (c / g for c in test["along_gravity_ci95"])
     confirmed = bool(differs and ((test_low > 1) if low > 1 else (test_high < 1)))
+    shape = gravity_like(dataset, dataset.split("val"))
     out.update(
+        **shape,
+        # what the gravity_scale effect may lean on: a differing acceleration that is a gravity, not a drag
+        apparent_gravity=bool(differs and shape["gravity_like"]),
         scale=scale,
         frame_interval_factor=float(np.sqrt(scale)),  # the true frame interval / meta.dt, if the time base is off
         frame_rate=float(1.0 / (np.sqrt(scale) * dataset.dt)),
@@ -141,8 +176,16 @@ def sentence(found: dict) -> str:
     if not found["differs"]:
         return head + ": consistent with meta (val)."
     verdict = "confirmed on test" if found["confirmed"] else "NOT confirmed on test"
+    if not found["gravity_like"]:
+        return (
+            f"{head}: {found['scale']:.4f} × meta (train), differs on val, {verdict}; but not a gravity: on val it "
+            f"varies with the motion ({found['speed_dependent_m_s2']:.3f} m/s² as drag would grow) or points across "
+            f"gravity ({found['across_gravity_m_s2']:.3f} m/s²), so a force acts in free flight (drag, wind) or "
+            f"bodies counted as flying rest on something."
+        )
     return (
-        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}. Either the true "
-        f"frame interval is {found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths "
-        f"are recorded at {found['length_scale']:.4f} × true, or meta.gravity is wrong."
+        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}, the same for every "
+        f"frame (as drag would grow: {found['speed_dependent_m_s2']:.3f} m/s²). Either the true frame interval is "
+        f"{found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths are recorded at "
+        f"{found['length_scale']:.4f} × true, or meta.gravity is wrong."
     )

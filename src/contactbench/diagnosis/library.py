@@ -30,14 +30,18 @@ class Effect:
     parameters: tuple[Parameter, ...]
     physics: str  # what it is, in words (for the report)
     mujoco: str  # how it is modelled in MuJoCo
+    # A model-free measurement (free flight) shows this effect beyond its own practical margin on val: the effect
+    # then counts as practically meaningful without closing the simulator-loss margin (it must still be significant).
+    measured: bool = False
 
 
 GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
 
 
-def library(width: float, gravity_scale: float = 1.0) -> dict[str, Effect]:
+def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = False) -> dict[str, Effect]:
     """The candidate effects for bodies of the given width (m); their names are generation.effects.EFFECT_NAMES.
-    `gravity_scale`: where the gravity_scale fit starts, the train split's free-flight measurement (1: off)."""
+    `gravity_scale`: where the gravity_scale fit starts, the train split's free-flight measurement (1: off);
+    `gravity_measured`: the free-flight check found an apparent gravity on val (diagnosis.free_flight)."""
     reach = 0.3 * width
     gravity_start = float(np.clip(gravity_scale, *GRAVITY_SCALE_BOUNDS))
     effects = [
@@ -110,6 +114,7 @@ def library(width: float, gravity_scale: float = 1.0) -> dict[str, Effect]:
             "an apparent gravity other than meta.gravity: the tracker's time base (true frame interval sqrt(scale) dt) "
             "or length scale off, or meta.gravity wrong",
             "option gravity x scale",
+            measured=gravity_measured,
         ),
     ]
     assert tuple(effect.name for effect in effects) == EFFECT_NAMES

@@ -10,7 +10,7 @@ import numpy as np
 
 from contactbench.diagnosis import free_flight, open_world
 from contactbench.diagnosis.fitting import ResidualFit
-from contactbench.diagnosis.library import Hypothesis, library
+from contactbench.diagnosis.library import Effect, Hypothesis, library
 from contactbench.diagnosis.phases import FREE, PHASES, label_phases
 from contactbench.diagnosis.segments import (
     COMPONENTS,
@@ -45,10 +45,15 @@ class Budget:
 class Decision:
     """When an effect counts: significantly better on val than the model of its round (paired bootstrap, 95%),
     closing at least `margin` of the BASE simulator's val loss (so a second effect must matter on the scale of the
-    original mismatch, not merely polish the first effect's model-form error), and a better BIC on train."""
+    original mismatch, not merely polish the first effect's model-form error), and a better BIC on train. An effect
+    a model-free measurement already shows beyond that measurement's own margin (an apparent gravity in free flight)
+    is practically meaningful by that measurement, and needs only the significance and the BIC."""
 
     margin: float = 0.05
     confidence: float = 0.95
+
+    def meaningful(self, closes: float, effect: Effect) -> bool:
+        return closes >= self.margin or effect.measured
 
 
 def _pick(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
@@ -93,7 +98,11 @@ class Diagnosis:
         self.free_flight = free_flight.check(
             dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence
         )
-        self.library = library(float(dataset.widths().max()), self.free_flight["scale"] or 1.0)
+        self.library = library(
+            float(dataset.widths().max()),
+            self.free_flight["scale"] or 1.0,
+            bool(self.free_flight.get("apparent_gravity")),
+        )
         train, val = dataset.split("train"), dataset.split("val")
         fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
         val_rows = _pick(self.rng, val.n_trajectories, budget.val_trajectories)
@@ -247,7 +256,9 @@ class Diagnosis:
                     "delta_bic": float(delta_bic),
                     "parameters": trial.reported(trial_values)[effect.name],
                 }
-                record["passes"] = bool(ci[0] > 0 and closes >= self.decision.margin and delta_bic < 0)
+                record["passes"] = bool(ci[0] > 0 and self.decision.meaningful(closes, effect) and delta_bic < 0)
+                if effect.measured:
+                    record["measured_model_free"] = True
                 records.append(record)
                 fitted.append((record, trial, trial_values, val, train_loss))
                 log.info(
@@ -316,7 +327,7 @@ class Diagnosis:
                 other_val, current_val, self.budget.bootstrap, self.rng, self.decision.confidence
             )
             closes = float((other_val.mean() - current_val.mean()) / base_val.mean())
-            kept = bool(ci[0] > 0 and closes >= self.decision.margin)
+            kept = bool(ci[0] > 0 and self.decision.meaningful(closes, effect))
             self.given_the_others.append(
                 {
                     "name": effect.name,
@@ -526,7 +537,8 @@ def run_diagnosis(
             "margin": decision.margin,
             "confidence": decision.confidence,
             "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
-            "closing >= margin of the base simulator's val loss, and delta BIC < 0 on train",
+            "closing >= margin of the base simulator's val loss (or, for gravity_scale, an apparent gravity measured "
+            "model-free in free flight on val), and delta BIC < 0 on train",
         },
         "budget": budget.__dict__,
         "robust_scale": steps.train_fit.scale,
