@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
 
 from contactbench import runs
 from contactbench.config import CONFIG_DIR, REPO_ROOT
@@ -23,6 +24,14 @@ from contactbench.evaluation.figures import learning_curve_figure
 
 VARIANTS = ("frictioncubes_0.5", "contactnets_cube")
 MODELS = ("gnn", "gnn_paper")
+SCHEDULE = ("max_steps", "val_check_interval", "val_rollouts")  # gnn_paper runs on gnn's
+
+
+def composed(model: str, variant: str, budget: str) -> DictConfig:
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose(
+            config_name="train", overrides=[f"model={model}", f"variant={variant}", f"budget={budget}", "resume=false"]
+        )
 
 
 def curve(run_dir: Path) -> list[tuple[float, float, float]]:
@@ -47,18 +56,13 @@ def main() -> None:
     parser.add_argument("--draw-only", action="store_true", help="train nothing: draw the runs already in --out")
     args = parser.parse_args()
     curves, table = {}, []
+    schedule = {key: composed("gnn", VARIANTS[0], args.budget).model.budgets[args.budget][key] for key in SCHEDULE}
     for variant in args.variants:
         for model in args.models:
             run_dir = args.out / f"{model}_{variant}"
-            with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-                cfg = compose(
-                    config_name="train",
-                    overrides=[f"model={model}", f"variant={variant}", f"budget={args.budget}", "resume=false"],
-                )
+            cfg = composed(model, variant, args.budget)
             if model == "gnn_paper":  # the same steps and validations as gnn: the curves then span similar times
-                cfg.budget.gnn_paper.max_steps = cfg.budget.gnn.max_steps
-                cfg.budget.gnn_paper.val_check_interval = cfg.budget.gnn.val_check_interval
-                cfg.budget.gnn_paper.val_rollouts = cfg.budget.gnn.val_rollouts
+                cfg.model.budgets[args.budget].update(schedule)
             started = time.perf_counter()
             if (run_dir / "fitted.json").is_file() or args.draw_only:
                 val_pos_err = json.loads((run_dir / "val" / "metrics.json").read_text())["pos_err"]

@@ -36,8 +36,8 @@ def entry_groups(entry: str) -> list[str]:
 
 def cases(entry: str) -> list[list[str]]:
     """Override lists: the defaults, each option of each group the entry uses, each launcher; for train (evaluate
-    composes the same model and budget nodes) every model with every budget, since each budget file knows every
-    model."""
+    composes the same model and budget nodes) every model with every budget, since each model's config holds its
+    numbers for every budget."""
     found = [[]]
     for group in entry_groups(entry):
         found += [[f"{group}={option}"] for option in options(group)]

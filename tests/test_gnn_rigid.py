@@ -237,7 +237,7 @@ def test_smoke_training_improves_on_the_untrained_model():
         enable_model_summary=False,
     )
     trainer.fit(module, datamodule=datamodule)
-    assert trainer.global_step == cfg.budget.gnn.max_steps
+    assert trainer.global_step == cfg.model.budgets.smoke.max_steps
     assert module.simulator.loss(held_out, add_noise=False).item() < 0.9 * before
 
 

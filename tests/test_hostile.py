@@ -326,16 +326,34 @@ def test_an_escaping_split_path_is_one_clear_error_from_the_command_line(tmp_pat
 
 BAD_SETTINGS = {
     "negative sysid evaluations": (
-        ["model=sysid", "budget.sysid.evaluations=-16"],
-        "budget.sysid.evaluations is -16 (expected a positive integer)",
+        ["budget=smoke", "model=sysid", "model.budgets.smoke.evaluations=-16"],
+        "model.budgets.smoke.evaluations is -16 (expected a positive integer)",
     ),
-    "negative gnn steps": (["budget.gnn.max_steps=-1"], "budget.gnn.max_steps is -1 (expected a positive integer)"),
+    "negative gnn steps": (
+        ["budget=smoke", "model=gnn", "model.budgets.smoke.max_steps=-1"],
+        "model.budgets.smoke.max_steps is -1 (expected a positive integer)",
+    ),
     "zero batch": (
-        ["budget.sysid.batch_trajectories=0"],
-        "budget.sysid.batch_trajectories is 0 (expected a positive integer or null (all))",
+        ["budget=smoke", "model=sysid", "model.budgets.smoke.batch_trajectories=0"],
+        "model.budgets.smoke.batch_trajectories is 0 (expected a positive integer or null (all))",
     ),
-    "fractional restarts": (["budget.sysid.restarts=1.5"], "budget.sysid.restarts is 1.5"),
-    "negative learning rate": (["budget.gnn.lr=-0.001"], "budget.gnn.lr is -0.001 (expected a positive number)"),
+    "fractional restarts": (
+        ["budget=smoke", "model=sysid", "model.budgets.smoke.restarts=1.5"],
+        "model.budgets.smoke.restarts is 1.5",
+    ),
+    "negative learning rate": (
+        ["budget=smoke", "model=gnn", "model.budgets.smoke.lr=-0.001"],
+        "model.budgets.smoke.lr is -0.001 (expected a positive number)",
+    ),
+    "residual stage one": (
+        ["budget=smoke", "model=residual", "model.budgets.smoke.search.restarts=0"],
+        "model.budgets.smoke.search.restarts is 0 (expected a positive integer)",
+    ),
+    "a budget the model does not have": (
+        ["model=gnn", "budget.name=tiny"],
+        "model gnn has no budget 'tiny' (expected one of smoke, quick, paper in its config's budgets)",
+    ),
+    "zero diagnosis bootstrap": (["budget.diagnose.bootstrap=0"], "budget.diagnose.bootstrap is 0"),
     "negative friction": (
         ["friction=-1"],
         "scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)",
@@ -394,8 +412,8 @@ def test_a_direct_sysid_override_is_checked_by_the_module(small_recordings):
         ),
         (
             "train.py",
-            ["model=sysid", "budget.sysid.evaluations=-16"],
-            "error: budget.sysid.evaluations is -16 (expected a positive integer)",
+            ["budget=smoke", "model=sysid", "model.budgets.smoke.evaluations=-16"],
+            "error: model.budgets.smoke.evaluations is -16 (expected a positive integer)",
         ),
         (
             "generate.py",

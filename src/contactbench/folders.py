@@ -28,8 +28,10 @@ class FolderRefused(ContactbenchError):
 
 def run_signature(cfg: DictConfig) -> dict:
     """What makes a fitted model what it is; a run folder only resumes or serves a model with the same signature."""
+    model = OmegaConf.to_container(cfg.model, resolve=True)
+    model.pop("budgets", None)  # the budget in use is resolved into the model's fields; the others do not matter
     signature = {
-        "model": OmegaConf.to_container(cfg.model, resolve=True),
+        "model": model,
         "dataset": str(cfg.dataset.path),
         "context_frames": int(cfg.context_frames),
         "seed": int(cfg.seed),

@@ -18,27 +18,39 @@ from contactbench.errors import ContactbenchError
 
 log = logging.getLogger(__name__)
 
-# Budget counts that must be positive integers, and those that may also be null (meaning "all").
-# Only these keys are checked: a budget key added later is not refused for being unknown here.
-COUNTS = {
-    "sysid": ("evaluations", "restarts", "num_workers"),
-    "gnn": ("max_steps", "val_check_interval"),
-    "hybrid": ("max_epochs",),
-    "residual": ("max_epochs", "patience", "segments_per_epoch", "val_segments"),
-    "diagnose": (
-        "segment_frames",
-        "fit_trajectories",
-        "val_trajectories",
-        "base_evaluations",
-        "batch",
-        "lsq_iterations",
-        "front_runners",
-        "max_effects",
-        "bootstrap",
-    ),
-}
-COUNTS_OR_ALL = {"sysid": ("batch_trajectories", "val_trajectories"), "gnn": ("val_rollouts",)}
-RATES = {"gnn": ("lr",), "residual": ("lr",)}
+# Budget counts that must be positive integers, those that may also be null (meaning "all"), and rates: checked by
+# name wherever they appear in the budget the run uses (budget.diagnose and the model's own budgets.<budget name>,
+# however deep), so a model of one's own is checked too. A key not listed here is not refused for being unknown.
+COUNTS = (
+    "evaluations",
+    "restarts",
+    "num_workers",
+    "max_steps",
+    "val_check_interval",
+    "max_epochs",
+    "patience",
+    "segments_per_epoch",
+    "val_segments",
+    "segment_frames",
+    "fit_trajectories",
+    "base_evaluations",
+    "batch",
+    "lsq_iterations",
+    "front_runners",
+    "max_effects",
+    "bootstrap",
+    "batch_trajectories",
+    "val_trajectories",
+    "val_rollouts",
+    "val_windows",
+    "batch_size",
+    "batch_vertices",
+    "latent_size",
+    "message_passing_steps",
+)
+# In a model's budgets these may also be null: every trajectory (the diagnosis always samples).
+COUNTS_OR_ALL = ("batch_trajectories", "val_trajectories", "val_rollouts")
+RATES = ("lr",)
 # Top-level keys no config file sets that the code reads when given (+effects=[floor_tilt] for generate, ...).
 OPTIONAL_KEYS = ("effects", "effect_strength", "overwrite", "resume", "torch_threads")
 
@@ -53,7 +65,15 @@ def check(cfg: DictConfig) -> None:
         raise ContactbenchError(unknown)
     budget = cfg.get("budget")
     if budget is not None:
-        _check_budget(budget)
+        _check_budget(budget.get("diagnose"), "budget.diagnose", or_all=())
+        model = cfg.get("model")
+        if model is not None and model.get("budgets") is not None:
+            if budget.name not in model.budgets:
+                raise ContactbenchError(
+                    f"model {model.name} has no budget {budget.name!r} (expected one of "
+                    f"{', '.join(model.budgets)} in its config's budgets)"
+                )
+            _check_budget(model.budgets[budget.name], f"model.budgets.{budget.name}", or_all=COUNTS_OR_ALL)
     dataset = cfg.get("dataset")
     if dataset is not None and dataset.get("scene") is not None:
         _check_scene(cfg)
@@ -107,34 +127,24 @@ def _missing(tree, prefix: str) -> list[str]:
     return [prefix[:-1]] if tree == "???" else []
 
 
-def _check_budget(budget: DictConfig) -> None:
-    for group, keys in COUNTS.items():
-        for key in keys:
-            _count(budget, group, key, allow_all=False)
-    for group, keys in COUNTS_OR_ALL.items():
-        for key in keys:
-            _count(budget, group, key, allow_all=True)
-    for group, keys in RATES.items():
-        for key in keys:
-            value = OmegaConf.select(budget, f"{group}.{key}", default=None)
-            if value is not None and (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (math.isfinite(value) and value > 0)
-            ):
-                raise ContactbenchError(f"budget.{group}.{key} is {value!r} (expected a positive number)")
-
-
-def _count(budget: DictConfig, group: str, key: str, allow_all: bool) -> None:
-    node = budget.get(group)
-    if node is None or key not in node:
+def _check_budget(node: DictConfig | None, where: str, or_all: tuple[str, ...]) -> None:
+    if not isinstance(node, DictConfig):
         return
-    value = node[key]
-    if value is None and allow_all:
-        return
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        expected = "a positive integer" + (" or null (all)" if allow_all else "")
-        raise ContactbenchError(f"budget.{group}.{key} is {value!r} (expected {expected})")
+    for key in node:
+        if isinstance(node.get(key), DictConfig):
+            _check_budget(node[key], f"{where}.{key}", or_all)
+            continue
+        value = node[key]
+        if key in COUNTS:
+            if value is None and key in or_all:
+                continue
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                expected = "a positive integer" + (" or null (all)" if key in or_all else "")
+                raise ContactbenchError(f"{where}.{key} is {value!r} (expected {expected})")
+        elif key in RATES and (
+            isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0)
+        ):
+            raise ContactbenchError(f"{where}.{key} is {value!r} (expected a positive number)")
 
 
 def _check_scene(cfg: DictConfig) -> None:

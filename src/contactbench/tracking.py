@@ -33,12 +33,13 @@ def curated_params(cfg: DictConfig) -> dict:
     """What a dashboard compares runs by: the model's own config and budget, the dataset, the observation and the
     protocol — not every other model's budget nor Hydra's bookkeeping."""
     tree = OmegaConf.to_container(cfg, resolve=True)
-    model = tree.get("model") or {}
+    model = dict(tree.get("model") or {})
     budget = tree.get("budget") or {}
+    budgets = model.pop("budgets", None) or {}
     chosen = {
         "model": model,
         "dataset": {key: (tree.get("dataset") or {}).get(key) for key in ("name", "variant", "path")},
-        "budget": {"name": budget.get("name"), **({} if model.get("name") not in budget else budget[model["name"]])},
+        "budget": {"name": budget.get("name"), **budgets.get(budget.get("name"), {})},
         "observation": tree.get("observation") or {},
         "seed": tree.get("seed"),
         "context_frames": tree.get("context_frames"),
