@@ -29,9 +29,9 @@ class FromVelocities(MujocoContactModel):
         super().__init__(**kwargs)
         self.estimator = estimator
 
-    def rollout(self, dataset, context: Context) -> np.ndarray:
-        velocities = self.estimator(context.poses, dataset.dt)
-        return super().rollout(dataset, replace(context, velocities=velocities))
+    def rollout(self, scene, context: Context) -> np.ndarray:
+        velocities = self.estimator(context.poses, scene.dt)
+        return super().rollout(scene, replace(context, velocities=velocities))
 
 
 def main() -> None:

@@ -51,15 +51,15 @@ def cube_recordings(splits: dict[str, Split] | None = None) -> Recordings:
 
 
 @pytest.fixture
-def scene() -> dynamics.Scene:
-    return dynamics.scene_from_recordings(cube_recordings())
+def scene() -> dynamics.SingleBodyScene:
+    return dynamics.single_body_scene(cube_recordings())
 
 
 def make_state(position, orientation=(1.0, 0.0, 0.0, 0.0), linear=(0.0, 0.0, 0.0), angular=(0.0, 0.0, 0.0)) -> State:
     return State(*(np.asarray(value, dtype=float)[None] for value in (position, orientation, linear, angular)))
 
 
-def bottom_vertices(scene: dynamics.Scene) -> np.ndarray:
+def bottom_vertices(scene: dynamics.SingleBodyScene) -> np.ndarray:
     return scene.body.vertices[:, 2] < 0
 
 
@@ -175,7 +175,9 @@ def test_sliding_cube_decelerates_as_the_hand_result(scene):
     assert impulses[0, front].sum() / (MASS * G * DT) == pytest.approx((1 + mu) / 2, rel=1e-7)  # h / a = 1 for a cube
 
 
-def kinetic_energy(state: State, scene: dynamics.Scene, linear: np.ndarray, angular: np.ndarray) -> np.ndarray:
+def kinetic_energy(
+    state: State, scene: dynamics.SingleBodyScene, linear: np.ndarray, angular: np.ndarray
+) -> np.ndarray:
     inertia = dynamics.world_inertia(state.orientation, scene.body)
     return 0.5 * MASS * np.sum(linear**2, axis=-1) + 0.5 * np.einsum("bi,bij,bj->b", angular, inertia, angular)
 
@@ -227,7 +229,9 @@ def test_dissipative_friction_never_adds_kinetic_energy(scene):
 # ---------------------------------------------------------------- inverse dynamics
 
 
-def window_split(state: State, next_linear: np.ndarray, next_angular: np.ndarray, scene: dynamics.Scene) -> Split:
+def window_split(
+    state: State, next_linear: np.ndarray, next_angular: np.ndarray, scene: dynamics.SingleBodyScene
+) -> Split:
     """Frames t-1, t, t+1 of one trajectory whose backward differences are the given velocities."""
     before = State(
         state.position - DT * state.linear,
@@ -241,7 +245,7 @@ def window_split(state: State, next_linear: np.ndarray, next_angular: np.ndarray
 
 
 def applied_impulse(
-    state: State, scene: dynamics.Scene, normal: np.ndarray, friction_forces: np.ndarray, torsion: float
+    state: State, scene: dynamics.SingleBodyScene, normal: np.ndarray, friction_forces: np.ndarray, torsion: float
 ):
     """Body impulse of normal impulses [V] and tangential impulses [V, 3] at the vertices, plus a torsional impulse."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)[0]
@@ -298,7 +302,7 @@ def test_inverse_dynamics_recovers_a_corner_impact_per_vertex(scene):
 
 def test_free_flight_gives_a_zero_contact_wrench():
     recordings = falling_cubes(n_trajectories=3, n_frames=12)
-    scene = dynamics.scene_from_recordings(recordings)
+    scene = dynamics.single_body_scene(recordings)
     transitions = inverse.transitions_from_split(recordings.split("train"), scene, ContactSettings())
     assert len(transitions.frame) == 3 * 10
     assert np.abs(transitions.impulse).max() < 1e-10
@@ -393,7 +397,7 @@ def coulomb_friction(mu: float):
 def simulated_tosses(mu: float, tosses: int, frames: int, seed: int) -> Split:
     """Tosses made with the hybrid step itself and a Coulomb-like friction."""
     rng = np.random.default_rng(seed)
-    scene = dynamics.scene_from_recordings(cube_recordings())
+    scene = dynamics.single_body_scene(cube_recordings())
     orientation = rotations.uniform_random(rng, tosses)
     position = np.concatenate([rng.uniform(-0.3, 0.3, (tosses, 2)), rng.uniform(0.12, 0.2, (tosses, 1))], axis=-1)
     linear = np.concatenate([rng.uniform(-1, 1, (tosses, 2)), np.zeros((tosses, 1))], axis=-1)

@@ -70,7 +70,8 @@ def scene(
     }
     poses = np.zeros((1, 1, len(meshes), 7))
     poses[..., 3] = 1.0
-    return Recordings(meta, {b["mesh"]: m for b, m in zip(bodies, meshes)}, {"train": Split(poses, np.array([1]))})
+    meshes_by_path = {b["mesh"]: m for b, m in zip(bodies, meshes)}
+    return Recordings(meta=meta, meshes=meshes_by_path, splits={"train": Split(poses, np.array([1]))})
 
 
 CUBE = box([-0.05] * 3, [0.05] * 3)

@@ -87,7 +87,7 @@ class Oracle(MujocoContactModel):
         super().__init__("oracle", preset="mujoco_default")
         self.clean = clean
 
-    def rollout(self, dataset, context):
+    def rollout(self, scene, context):
         return self.clean.poses[:, : context.horizon]
 
 

@@ -239,13 +239,14 @@ def test_models_never_see_the_test_split_or_the_generator(tmp_path, monkeypatch)
     monkeypatch.setattr(
         MujocoContactModel,
         "rollout",
-        lambda self, dataset, context: (
-            seen.append(("rollout", sorted(dataset.splits), "generator" in dataset.meta))
-            or original_rollout(self, dataset, context)
+        lambda self, scene, context: (
+            seen.append(("rollout", type(scene).__name__, "generator" in scene.meta))
+            or original_rollout(self, scene, context)
         ),
     )
     runs.train(
         compose_config("train", ["dataset=contactnets_cube", "model=mujoco_default", "test=true"], tmp_path),
         tmp_path / "run",
     )
-    assert seen == [("fit", ["train", "val"], False), ("rollout", [], False), ("rollout", [], False)]
+    # rollouts get the scene alone: no trajectories to read
+    assert seen == [("fit", ["train", "val"], False), ("rollout", "Scene", False), ("rollout", "Scene", False)]

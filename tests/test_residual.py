@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -126,7 +127,7 @@ def rising_cubes():
         rotations.from_rotation_vector(np.arange(8)[None, :, None, None] * np.array([0.0, 0.004, 0.0])),
         split.poses[..., 3:],
     )
-    return type(dataset)(dataset.meta, dataset.meshes, {"train": split, "val": split}), len(rising)
+    return dataclasses.replace(dataset, splits={"train": split, "val": split}), len(rising)
 
 
 def test_the_rollout_gradient_is_the_loss_slope_in_free_flight():

@@ -103,10 +103,11 @@ class Split:
 
 
 @dataclass
-class Recordings:
+class Scene:
+    """What a model sees of a dataset when it rolls out: bodies, meshes, dt, gravity, floor; no trajectories."""
+
     meta: dict  # meta.json as read; unknown keys are kept and written back
     meshes: dict[str, Mesh]  # by the mesh path used in meta.bodies
-    splits: dict[str, Split]
     root: Path | None = None
 
     @property
@@ -161,6 +162,20 @@ class Recordings:
         if body.inertia_diagonal is not None:
             inertia = np.diag(body.inertia_diagonal)
         return com, inertia
+
+
+@dataclass
+class Recordings(Scene):
+    """A scene and its recorded trajectories, split by name (train, val, test)."""
+
+    splits: dict[str, Split] = field(default_factory=dict)
+
+    @property
+    def scene(self) -> Scene:
+        """The scene alone, without meta.generator (the hidden simulation parameters): what a rollout may see."""
+        meta = copy.deepcopy(self.meta)
+        meta.pop("generator", None)
+        return Scene(meta=meta, meshes=self.meshes, root=self.root)
 
     def split(self, name: str) -> Split:
         if name not in self.splits:

@@ -278,7 +278,7 @@ def _trajectory(arrays: dict, path: Path) -> Path:
     index = int(np.argmax(gain)) if arrays["final"].effects else 0
     test = dataset.split("test").select([index])
     context = make_context(test, dataset.dt, steps.context_frames)
-    scene = dataset.for_models()
+    scene = dataset.scene
     before = rollout_context(scene, context, arrays["base"].contact_parameters(arrays["base_values"]))[0]
     after = rollout_context(scene, context, arrays["final"].contact_parameters(arrays["final_values"]))[0]
     phases = label_phases(dataset, test)[0, :, 0]

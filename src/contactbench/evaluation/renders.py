@@ -48,9 +48,7 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
         chosen = range(min(trajectories, dataset.split("test").n_trajectories))
         test = dataset.split("test").select(chosen)
         model = runs.load_fitted(cfg, dataset, train_dir)
-        predicted[cfg.model.name] = model.rollout(
-            dataset.for_models(), make_context(test, dataset.dt, cfg.context_frames)
-        )
+        predicted[cfg.model.name] = model.rollout(dataset.scene, make_context(test, dataset.dt, cfg.context_frames))
         truth_split = observed.truth.split("test").select(chosen)
         truth, lengths = truth_split.poses, truth_split.lengths
         label = f"{cfg.dataset.name} {cfg.dataset.variant}"

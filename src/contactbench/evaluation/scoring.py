@@ -51,7 +51,7 @@ def score_model(
         raise ValueError(f"truth has poses of shape {reference.poses.shape}, the split {recorded.poses.shape}")
     context = make_context(recorded, dataset.dt, context_frames)
     started = time.perf_counter()
-    predicted = model.rollout(dataset.for_models(), context)
+    predicted = model.rollout(dataset.scene, context)
     elapsed = time.perf_counter() - started
     expected = (recorded.n_trajectories, context.horizon, dataset.n_bodies, 7)
     if predicted.shape != expected:

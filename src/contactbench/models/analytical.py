@@ -7,7 +7,7 @@ import numpy as np
 from contactbench.errors import ContactbenchError
 from contactbench.models.base import ContactModel
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings
+from contactbench.recordings import Recordings, Scene
 from contactbench.sim.mujoco_scene import ContactParameters, scene_xml
 from contactbench.sim.rollout import rollout_context
 
@@ -40,11 +40,11 @@ class MujocoContactModel(ContactModel):
         self.parameters = parameters
         self.substeps = substeps
 
-    def contact_parameters(self, dataset: Recordings) -> ContactParameters:
+    def contact_parameters(self, dataset: Scene) -> ContactParameters:
         return self.parameters if self.parameters is not None else preset_parameters(self.preset, dataset.n_bodies)
 
     def scene_xml(self, dataset: Recordings) -> str:
         return scene_xml(dataset, self.contact_parameters(dataset), self.substeps)
 
-    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
-        return rollout_context(dataset, context, self.contact_parameters(dataset), substeps=self.substeps)
+    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
+        return rollout_context(scene, context, self.contact_parameters(scene), substeps=self.substeps)

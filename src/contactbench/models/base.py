@@ -8,7 +8,7 @@ import numpy as np
 
 from contactbench.errors import ContactbenchError
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings
+from contactbench.recordings import Recordings, Scene
 
 
 class ContactModel(ABC):
@@ -20,10 +20,10 @@ class ContactModel(ABC):
         """Fit on dataset.split('train'); select on dataset.split('val')."""
 
     @abstractmethod
-    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
+    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
         """Predicted poses [N, context.horizon, K, 7]; the first C frames are the context itself.
 
-        `dataset` supplies the scene only (meta: dt, gravity, floor; meshes); a model must not read its splits here.
+        `scene`: bodies, meshes, dt, gravity, floor (no trajectories); `context`: the trajectories' first C frames.
         """
 
     def fitted_state(self) -> dict:

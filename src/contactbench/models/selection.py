@@ -31,7 +31,7 @@ def rollout_errors(
     long_enough = np.flatnonzero(split.lengths > context_frames)
     chosen = split.select(long_enough[evenly_spaced(len(long_enough), trajectories)])
     context = make_context(chosen, dataset.dt, context_frames)
-    predicted = model.rollout(dataset, context)
+    predicted = model.rollout(dataset.scene, context)
     recorded = chosen.poses[:, : context.horizon]
     scored = scored_frames(chosen.lengths, context.horizon, context_frames)
     per_frame = {

@@ -36,7 +36,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Recordings
+from contactbench.recordings import Scene
 from contactbench.values import freeze_numbers
 
 MUJOCO_DEFAULT_SOLREF = (0.02, 1.0)  # time constant (s), damping ratio: MuJoCo's default for every contact
@@ -117,7 +117,7 @@ class ContactParameters:
         return (-self.floor_stiffness, -self.floor_damping)
 
 
-def inertials(dataset: Recordings, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray]:
+def inertials(dataset: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray]:
     """Every body's centre of mass [K, 3] (mesh frame) and inertia tensor about it [K, 3, 3] in the scene with
     `effects` (an offset centre of mass, scaled inertias)."""
     root_scale = np.sqrt(np.array(effects.inertia_scale))
@@ -130,7 +130,7 @@ def _numbers(values) -> str:
     return " ".join(repr(float(x)) for x in np.ravel(values))
 
 
-def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1) -> str:
+def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> str:
     """The MJCF text of the dataset's scene with the given contact parameters (see the module docstring)."""
     if len(params.object_friction) != dataset.n_bodies:
         raise ContactbenchError(
@@ -193,7 +193,7 @@ def scene_xml(dataset: Recordings, params: ContactParameters, substeps: int = 1)
     )
 
 
-def build_model(dataset: Recordings, params: ContactParameters, substeps: int = 1) -> mujoco.MjModel:
+def build_model(dataset: Scene, params: ContactParameters, substeps: int = 1) -> mujoco.MjModel:
     """A compiled MuJoCo model of the scene: one free body per recordings body, timestep dt / substeps."""
     return mujoco.MjModel.from_xml_string(scene_xml(dataset, params, substeps))
 

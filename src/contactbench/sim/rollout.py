@@ -22,7 +22,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings
+from contactbench.recordings import Scene
 from contactbench.sim.mujoco_scene import (
     NO_EFFECTS,
     ContactParameters,
@@ -117,7 +117,7 @@ class SimulationResult:
 class MujocoRollouts:
     """Rolls a dataset's scene out in MuJoCo for any number of contact parameter sets and initial states."""
 
-    def __init__(self, dataset: Recordings, nthread: int | None = None, substeps: int = 1):
+    def __init__(self, dataset: Scene, nthread: int | None = None, substeps: int = 1):
         self.dataset = dataset
         self.substeps = int(substeps)
         self.nthread = int(nthread or available_cores())
@@ -298,7 +298,7 @@ def structure_key(model: mujoco.MjModel) -> tuple:
 
 
 def mechanical_energy(
-    dataset: Recordings, poses: np.ndarray, velocities: np.ndarray, effects: SceneEffects = NO_EFFECTS
+    dataset: Scene, poses: np.ndarray, velocities: np.ndarray, effects: SceneEffects = NO_EFFECTS
 ) -> np.ndarray:
     """Kinetic + gravitational energy (J, zero at the floor) of the scene with `effects` at poses [..., K, 7],
     velocities [..., K, 6]."""
@@ -306,7 +306,7 @@ def mechanical_energy(
 
 
 def body_frame_energy(
-    dataset: Recordings, poses: np.ndarray, qvel: np.ndarray, effects: SceneEffects = NO_EFFECTS
+    dataset: Scene, poses: np.ndarray, qvel: np.ndarray, effects: SceneEffects = NO_EFFECTS
 ) -> np.ndarray:
     """mechanical_energy from MuJoCo's free-joint velocities qvel [..., K, 6] (angular part in the body frame)."""
     masses = np.array([body.mass for body in dataset.bodies])
@@ -333,7 +333,7 @@ def kinetic_energies(
 
 
 def rollout_context(
-    dataset: Recordings, context: Context, params: ContactParameters, substeps: int = 1, nthread: int | None = None
+    dataset: Scene, context: Context, params: ContactParameters, substeps: int = 1, nthread: int | None = None
 ) -> np.ndarray:
     """Poses [N, context.horizon, K, 7]: the context frames, then MuJoCo's prediction from the last of them."""
     return MujocoRollouts(dataset, nthread, substeps).rollout_context(context, params).poses[0]

@@ -49,7 +49,7 @@ from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.simulator import STATISTICS_CHUNK, LearnedSimulator, check_same_scene, random_walk_noise
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Split
+from contactbench.recordings import Scene, Split
 
 SEPARATION_SWEEPS = 4  # Jacobi sweeps of the pairwise separation: enough for a stack of five
 
@@ -409,8 +409,8 @@ class RigidGNNContactModel(ContactModel):
         self.simulator = simulator
         self.batch_size = batch_size
 
-    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
-        check_same_scene(self.simulator, dataset, context)
+    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
+        check_same_scene(self.simulator, scene, context)
         n_steps = context.horizon - context.n_context
         device = self.simulator.rest_vertices.device
         predicted = [

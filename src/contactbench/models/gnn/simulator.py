@@ -34,7 +34,7 @@ from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.network import EncodeProcessDecode
 from contactbench.models.gnn.shape_matching import poses_from_vertices, project_to_rigid
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Split
+from contactbench.recordings import Scene, Split
 
 EDGE_FEATURES = 9
 # Floor on the normalisation scales (m/s, m/s²): a train split without motion along an axis would divide by zero.
@@ -200,7 +200,7 @@ class LearnedSimulator(nn.Module):
         return torch.stack(predicted, dim=1) if predicted else context[:, :0]
 
 
-def check_same_scene(simulator: LearnedSimulator, dataset: Recordings, context: Context) -> None:
+def check_same_scene(simulator: LearnedSimulator, dataset: Scene, context: Context) -> None:
     """Refuse a dataset whose meshes differ from the training scene's, or a context too short for the history."""
     scene = simulator.scene
     given = MeshScene.from_recordings(dataset)
@@ -224,8 +224,8 @@ class GNNContactModel(ContactModel):
         self.per_step_projection = per_step_projection
         self.batch_size = batch_size
 
-    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
-        check_same_scene(self.simulator, dataset, context)
+    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
+        check_same_scene(self.simulator, scene, context)
         scene = self.simulator.scene
         n_steps = context.horizon - context.n_context
         vertices = scene.world_vertices(context.poses)

@@ -16,7 +16,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.errors import NotApplicable
 from contactbench.kinematics import estimate_velocities
-from contactbench.recordings import Recordings
+from contactbench.recordings import Scene
 
 
 class SingleBodyError(NotApplicable):
@@ -37,15 +37,18 @@ class RigidBody:
 
 
 @dataclass(frozen=True)
-class Scene:
+class SingleBodyScene:
+    """One rigid body with gravity, dt and floor, as the hybrid integrator and LCP need them."""
+
     body: RigidBody
     gravity: np.ndarray  # [3] m/s^2, world frame
     dt: float  # s between frames
     floor_z: float  # m
 
 
-def scene_from_recordings(dataset: Recordings) -> Scene:
-    """The single body of `dataset` with its mass properties, and the dataset's gravity, dt and floor."""
+def single_body_scene(dataset: Scene) -> SingleBodyScene:
+    """The single body of a scene with its mass properties, and the scene's gravity, dt and floor: what the hybrid's
+    integrator and LCP work with."""
     if dataset.n_bodies != 1:
         raise SingleBodyError(
             f"the hybrid model supports single-body datasets; {dataset.name} has {dataset.n_bodies} bodies"
@@ -59,7 +62,7 @@ def scene_from_recordings(dataset: Recordings) -> Scene:
         vertices=mesh.vertices - com,
         width=mesh.width,
     )
-    return Scene(body=body, gravity=dataset.gravity, dt=dataset.dt, floor_z=dataset.floor_z)
+    return SingleBodyScene(body=body, gravity=dataset.gravity, dt=dataset.dt, floor_z=dataset.floor_z)
 
 
 @dataclass(frozen=True)
@@ -105,7 +108,7 @@ def world_inertia(orientation: np.ndarray, body: RigidBody) -> np.ndarray:
     return rotation @ body.inertia @ np.swapaxes(rotation, -1, -2)
 
 
-def unconstrained_velocities(state: State, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+def unconstrained_velocities(state: State, scene: SingleBodyScene) -> tuple[np.ndarray, np.ndarray]:
     """Velocities after one step of gravity and the (explicit) gyroscopic term, before any contact impulse."""
     inertia = world_inertia(state.orientation, scene.body)
     momentum = np.einsum("...ij,...j->...i", inertia, state.angular)
@@ -121,7 +124,9 @@ def velocity_change(orientation: np.ndarray, impulse: np.ndarray, body: RigidBod
     return impulse[..., :3] / body.mass, angular
 
 
-def impulse_between(state: State, next_linear: np.ndarray, next_angular: np.ndarray, scene: Scene) -> np.ndarray:
+def impulse_between(
+    state: State, next_linear: np.ndarray, next_angular: np.ndarray, scene: SingleBodyScene
+) -> np.ndarray:
     """The contact impulse [..., 6] that turns `state`'s velocities into the next ones: M (v' - v_unconstrained)."""
     linear, angular = unconstrained_velocities(state, scene)
     inertia = world_inertia(state.orientation, scene.body)
@@ -141,7 +146,7 @@ def vertex_offsets(orientation: np.ndarray, body: RigidBody) -> np.ndarray:
     return rotations.rotate(orientation[..., None, :], body.vertices)
 
 
-def vertex_gaps(state: State, scene: Scene) -> np.ndarray:
+def vertex_gaps(state: State, scene: SingleBodyScene) -> np.ndarray:
     """Signed height of each vertex above the floor [..., V] (negative: penetrating)."""
     return state.position[..., None, 2] + vertex_offsets(state.orientation, scene.body)[..., 2] - scene.floor_z
 

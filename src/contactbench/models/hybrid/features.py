@@ -20,14 +20,14 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.models.hybrid import dynamics
-from contactbench.models.hybrid.dynamics import RigidBody, Scene, State
+from contactbench.models.hybrid.dynamics import RigidBody, SingleBodyScene, State
 
 
 def feature_count(body: RigidBody) -> int:
     return 9 + body.n_vertices
 
 
-def body_features(state: State, scene: Scene) -> np.ndarray:
+def body_features(state: State, scene: SingleBodyScene) -> np.ndarray:
     """Features [..., 9 + V] of states [...]."""
     to_body = rotations.conjugate(state.orientation)
     gravity_direction = np.broadcast_to(scene.gravity / np.linalg.norm(scene.gravity), state.linear.shape)

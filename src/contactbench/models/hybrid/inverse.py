@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench.models.hybrid import dynamics, lcp
-from contactbench.models.hybrid.dynamics import Scene, State
+from contactbench.models.hybrid.dynamics import SingleBodyScene, State
 from contactbench.models.hybrid.lcp import ContactSettings
 from contactbench.recordings import Recordings, Split
 
@@ -116,7 +116,7 @@ def _closest_convex_combination(
 
 
 def decompose_impulse(
-    state: State, impulse: np.ndarray, scene: Scene, settings: ContactSettings
+    state: State, impulse: np.ndarray, scene: SingleBodyScene, settings: ContactSettings
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normal impulses [B, V] at the vertices and the friction impulse [B, 6] (world frame) of body impulses [B, 6]."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
@@ -149,7 +149,7 @@ class Transitions:
         return self.impulse - self.friction
 
 
-def transitions_from_split(split: Split, scene: Scene, settings: ContactSettings) -> Transitions:
+def transitions_from_split(split: Split, scene: SingleBodyScene, settings: ContactSettings) -> Transitions:
     """Inverse contact dynamics on every transition of `split` (body 0)."""
     frames = np.arange(split.n_frames)
     trajectory, frame = np.nonzero((frames[None, :] >= 1) & (frames[None, :] + 1 < split.lengths[:, None]))
@@ -186,7 +186,7 @@ def compare_with_bullet_contacts(
     which do not depend on how normal and friction are told apart), the relative error ||recovered - recorded|| /
     ||recorded|| over all transitions, the Pearson correlation of all components, and the recorded RMS.
     """
-    scene = dynamics.scene_from_recordings(dataset)
+    scene = dynamics.single_body_scene(dataset)
     data = dataset.split(split)
     missing = [name for name in BULLET_CONTACT_EXTRAS if name not in data.extras]
     if missing:

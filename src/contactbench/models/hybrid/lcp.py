@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from contactbench.models.hybrid import dynamics
-from contactbench.models.hybrid.dynamics import Scene, State
+from contactbench.models.hybrid.dynamics import SingleBodyScene, State
 
 Solver = Literal["pgs", "lemke"]
 
@@ -152,7 +152,7 @@ class ContactSettings:
 
 
 def contact_candidates(
-    state: State, scene: Scene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings
+    state: State, scene: SingleBodyScene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings
 ) -> np.ndarray:
     """Vertices [..., V] whose gap after a step at the given velocities would be under the contact margin."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
@@ -162,14 +162,14 @@ def contact_candidates(
     return predicted_gaps < settings.contact_margin * scene.body.width
 
 
-def in_contact(state: State, scene: Scene, settings: ContactSettings) -> np.ndarray:
+def in_contact(state: State, scene: SingleBodyScene, settings: ContactSettings) -> np.ndarray:
     """Bodies [...] that may touch the floor this step: some vertex is a candidate under gravity alone."""
     linear, angular = dynamics.unconstrained_velocities(state, scene)
     return contact_candidates(state, scene, linear, angular, settings).any(axis=-1)
 
 
 def normal_impulses(
-    state: State, scene: Scene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings
+    state: State, scene: SingleBodyScene, linear: np.ndarray, angular: np.ndarray, settings: ContactSettings
 ) -> np.ndarray:
     """Frictionless normal impulses [B, V] for bodies [B] whose velocities before contact are `linear`, `angular`."""
     offsets = dynamics.vertex_offsets(state.orientation, scene.body)
@@ -183,7 +183,7 @@ def normal_impulses(
     return solve_at_candidates(matrix, free_velocity - least_velocity, candidates, settings.solver)
 
 
-def dissipative_friction(state: State, scene: Scene, friction_impulse: np.ndarray) -> np.ndarray:
+def dissipative_friction(state: State, scene: SingleBodyScene, friction_impulse: np.ndarray) -> np.ndarray:
     """Friction impulses [B, 6] scaled down (by s in [0, 1]) so that they cannot add kinetic energy or overshoot.
 
     Coulomb friction opposes motion: within one step it can at most bring the motion it acts on to rest, never
@@ -206,7 +206,7 @@ def dissipative_friction(state: State, scene: Scene, friction_impulse: np.ndarra
 
 
 def frictionless_step(
-    state: State, scene: Scene, friction_impulse: np.ndarray, settings: ContactSettings
+    state: State, scene: SingleBodyScene, friction_impulse: np.ndarray, settings: ContactSettings
 ) -> tuple[State, np.ndarray]:
     """One step of bodies [B]: gravity and the given friction impulses [B, 6], then the LCP's normal impulses, then
     integration.

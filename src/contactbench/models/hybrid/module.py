@@ -28,10 +28,10 @@ from torch.utils.data import BatchSampler, DataLoader, RandomSampler, Sequential
 
 from contactbench.models.base import ContactModel
 from contactbench.models.hybrid import dynamics, features, inverse, lcp
-from contactbench.models.hybrid.dynamics import Scene, State
+from contactbench.models.hybrid.dynamics import SingleBodyScene, State
 from contactbench.models.hybrid.lcp import ContactSettings
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Split
+from contactbench.recordings import Recordings, Scene, Split
 
 FrictionPredictor = Callable[[np.ndarray], np.ndarray]  # body features [B, 9 + V] -> body-frame friction wrench [B, 6]
 
@@ -47,7 +47,7 @@ def _check_context_frames(context_frames: int) -> None:
         )
 
 
-def training_arrays(split: Split, scene: Scene, settings: ContactSettings) -> tuple[np.ndarray, np.ndarray]:
+def training_arrays(split: Split, scene: SingleBodyScene, settings: ContactSettings) -> tuple[np.ndarray, np.ndarray]:
     """Features [M, 9 + V] and body-frame friction wrenches [M, 6] of a split's in-contact transitions."""
     transitions = inverse.transitions_from_split(split, scene, settings)
     touching = transitions.in_contact
@@ -68,7 +68,7 @@ class HybridDataModule(pl.LightningDataModule):
         num_workers: int = 0,
     ):
         super().__init__()
-        self.scene = dynamics.scene_from_recordings(dataset)
+        self.scene = dynamics.single_body_scene(dataset)
         _check_context_frames(context_frames)
         self.dataset = dataset
         self.batch_size = batch_size
@@ -131,7 +131,7 @@ class HybridModule(pl.LightningModule):
         restitution: float = 0.0,
     ):
         super().__init__()
-        scene = dynamics.scene_from_recordings(dataset)
+        scene = dynamics.single_body_scene(dataset)
         _check_context_frames(context_frames)
         hidden = tuple(int(width) for width in hidden)  # plain ints: a checkpoint must open with weights_only=True
         self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
@@ -204,7 +204,7 @@ class HybridContactModel(ContactModel):
         self.predict_friction = predict_friction
         self.settings = settings
 
-    def step(self, state: State, scene: Scene) -> State:
+    def step(self, state: State, scene: SingleBodyScene) -> State:
         """States [B] one frame later."""
         friction = np.zeros(state.linear.shape[:-1] + (6,))
         touching = lcp.in_contact(state, scene, self.settings)
@@ -216,14 +216,14 @@ class HybridContactModel(ContactModel):
             )
         return lcp.frictionless_step(state, scene, friction, self.settings)[0]
 
-    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
+    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
         """Poses [N, horizon, 1, 7]; the state starts from the last two context poses (backward difference), which
         is the velocity convention the regressor was trained with, rather than from recorded (filtered) velocities."""
-        scene = dynamics.scene_from_recordings(dataset)
-        state = dynamics.states_from_poses(context.poses[:, -2:, 0], scene.body, scene.dt)[:, -1]
+        body_scene = dynamics.single_body_scene(scene)
+        state = dynamics.states_from_poses(context.poses[:, -2:, 0], body_scene.body, body_scene.dt)[:, -1]
         poses = np.empty((len(context.poses), context.horizon, 1, 7))
         poses[:, : context.n_context] = context.poses
         for frame in range(context.n_context, context.horizon):
-            state = self.step(state, scene)
-            poses[:, frame, 0] = dynamics.poses_from_states(state, scene.body)
+            state = self.step(state, body_scene)
+            poses[:, frame, 0] = dynamics.poses_from_states(state, body_scene.body)
         return poses

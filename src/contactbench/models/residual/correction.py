@@ -23,7 +23,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.kinematics import world_vertices
-from contactbench.recordings import Recordings
+from contactbench.recordings import Scene
 from contactbench.sim.rollout import kinetic_energies
 
 LOWEST_VERTICES = 4  # the body's vertices nearest the floor that the features describe (a tetrahedron has four)
@@ -44,7 +44,7 @@ class Bodies:
     dt: float
 
     @classmethod
-    def of(cls, dataset: Recordings) -> Bodies:
+    def of(cls, dataset: Scene) -> Bodies:
         properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
         return cls(
             vertices=tuple(np.asarray(dataset.body_mesh(k).vertices, dtype=float) for k in range(dataset.n_bodies)),

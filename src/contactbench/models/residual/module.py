@@ -43,7 +43,7 @@ from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Split
+from contactbench.recordings import Recordings, Scene, Split
 from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities, pack_state, scene_xml
 from contactbench.sim.rollout import MujocoRollouts
 
@@ -74,10 +74,10 @@ class ResidualContactModel(ContactModel):
     def scene_xml(self, dataset: Recordings) -> str:
         return scene_xml(dataset, self.parameters, self.substeps)
 
-    def rollout(self, dataset: Recordings, context: Context) -> np.ndarray:
-        simulator = MujocoRollouts(dataset, self.nthread, self.substeps)
-        bodies = Bodies.of(dataset)
-        n, n_bodies = len(context.poses), dataset.n_bodies
+    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
+        simulator = MujocoRollouts(scene, self.nthread, self.substeps)
+        bodies = Bodies.of(scene)
+        n, n_bodies = len(context.poses), scene.n_bodies
         qpos, qvel = pack_state(context.poses[:, -1], context.velocities[:, -1])
         qpos, qvel = qpos.reshape(n, n_bodies, 7), qvel.reshape(n, n_bodies, 6)
         poses = np.empty((n, context.horizon, n_bodies, 7))
