@@ -42,7 +42,7 @@ def without_spin(recordings: Recordings) -> Recordings:
 
 
 def simulator_for(recordings: Recordings, **options) -> LearnedSimulator:
-    scene = MeshScene.from_recordings(recordings)
+    scene = MeshScene.of(recordings)
     return LearnedSimulator(
         scene, recordings.dt, recordings.floor_z, collision_radius(scene.widths), **{**TINY, **options}
     )
@@ -52,7 +52,7 @@ def simulator_for(recordings: Recordings, **options) -> LearnedSimulator:
 
 
 def test_mesh_edges_cover_every_cube_edge_in_both_directions():
-    scene = MeshScene.from_recordings(falling_cubes(n_bodies=2))
+    scene = MeshScene.of(falling_cubes(n_bodies=2))
     assert scene.n_nodes == 16 and scene.n_bodies == 2
     # a triangulated cube: 12 box edges + 6 face diagonals, each both ways, per body
     assert scene.mesh_edges.shape == (2, 2 * 2 * 18)
@@ -63,7 +63,7 @@ def test_mesh_edges_cover_every_cube_edge_in_both_directions():
 
 def test_collision_edges_join_nearby_vertices_of_different_bodies_only():
     recordings = falling_cubes(n_bodies=3)
-    scene = MeshScene.from_recordings(recordings)
+    scene = MeshScene.of(recordings)
     width = scene.widths[0]
     radius = collision_radius(scene.widths)
     identity = [1.0, 0.0, 0.0, 0.0]
@@ -347,7 +347,7 @@ def test_runs_on_the_real_cube_with_variable_lengths():
         real, splits={"train": real.split("train").select(range(5)), "val": real.split("val").select(range(3))}
     )
     assert len(set(small.split("val").lengths)) > 1
-    windows = VertexWindows(small.split("train"), MeshScene.from_recordings(small), 7)
+    windows = VertexWindows(small.split("train"), MeshScene.of(small), 7)
     assert len(windows) == int(np.sum(small.split("train").lengths - 6))
     assert torch.all(torch.isfinite(windows[np.arange(len(windows))]))
     module = GNNModule(small, **TINY)

@@ -31,7 +31,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def rigid_simulator(recordings, **options) -> RigidLearnedSimulator:
-    scene = MeshScene.from_recordings(recordings)
+    scene = MeshScene.of(recordings)
     simulator = RigidLearnedSimulator(
         scene,
         recordings.dt,
@@ -93,7 +93,7 @@ def test_with_solid_inertia_vertex_outputs_act_as_forces_on_the_solid_body():
     """Newton-Euler: one vertex of a cube (side w) pushed by f gives the centre of mass f / 8 and the body
     (r x f) / (8 I/m) with I/m = w^2 / 6, so a push at a corner turns the cube 3x faster than the least-squares fit."""
     recordings = falling_cubes(n_trajectories=1)
-    inertia = inertia_per_mass(recordings, MeshScene.from_recordings(recordings))
+    inertia = inertia_per_mass(recordings, MeshScene.of(recordings))
     width = recordings.widths()[0]
     np.testing.assert_allclose(inertia[0], np.eye(3) * width**2 / 6, atol=1e-12)
     solid, least_squares = rigid_simulator(recordings, solid_inertia=inertia), rigid_simulator(recordings)

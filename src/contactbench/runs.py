@@ -2,24 +2,21 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytorch_lightning as pl
 import torch
-from hydra.utils import get_class, instantiate
+from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from contactbench import atomic, folders, settings, tracking
+from contactbench import atomic, folders, restore, settings, tracking
 from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
-from contactbench.observation import Observation
 from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings, require_frames
 
 log = logging.getLogger(__name__)
@@ -73,41 +70,14 @@ def generate(cfg: DictConfig) -> Path:
     return written
 
 
-def observation_of(cfg: DictConfig) -> Observation:
-    node = cfg.get("observation") or {}
-    return Observation(
-        noise_mm=node.get("noise_mm", 0.0), frame_stride=node.get("frame_stride", 1), seed=node.get("seed", 0)
-    )
-
-
-@dataclass(frozen=True)
-class Observed:
-    """What the models see of a dataset (`dataset`), what they are scored against (`truth`) and how it was observed."""
-
-    dataset: Recordings
-    truth: Recordings
-    observation: dict
-
-
-def load_dataset(cfg: DictConfig, splits: list[str]) -> Observed:
+def load_dataset(cfg: DictConfig, splits: list[str]) -> restore.Observed:
     """Read the configured dataset's splits (generating a synthetic variant first if it is not there yet) and observe
     them as cfg.observation says (noise, frame stride); synthetic data are scored against the clean recording."""
     path = Path(cfg.dataset.path)
     if not (path / "meta.json").exists() and cfg.dataset.scene is not None:
         log.info("%s not found: generating it", path)
         generate(cfg)
-    recorded = read_recordings(path, splits)
-    observation = observation_of(cfg)
-    dataset = observation.observe(recorded)
-    truth = dataset if recorded.real or observation.plain else observation.clean(recorded)
-    scored_against = "observed recording" if recorded.real else "clean recording"
-    context_frames = int(cfg.context_frames)
-    require_frames(
-        dataset,
-        context_frames + 1,
-        f"context_frames={context_frames} frames are given to the models, which predict the rest",
-    )
-    return Observed(dataset, truth, observation.describe(scored_against))
+    return restore.observed(cfg, read_recordings(path, splits))
 
 
 # ---------------------------------------------------------------- models
@@ -150,7 +120,7 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
     best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
     checkpoint = Path(best_path).name if best_path else "last.ckpt"
-    module = _load_module(cfg, dataset, checkpoint_dir / checkpoint)
+    module = restore.load_module(cfg, dataset, checkpoint_dir / checkpoint)
     summary = module.fitted_summary() if hasattr(module, "fitted_summary") else {}
     atomic.write_json(output_dir / "fitted.json", {"model": cfg.model.name, "checkpoint": checkpoint, **summary})
     return module.to_contact_model()
@@ -163,31 +133,6 @@ def _callback(node: DictConfig, checkpoint_dir: Path):
     return instantiate(node)
 
 
-def _load_module(cfg: DictConfig, dataset: Recordings, checkpoint: Path):
-    module_class = get_class(cfg.model.module._target_)
-    return module_class.load_from_checkpoint(str(checkpoint), dataset=dataset, weights_only=True, map_location="cpu")
-
-
-def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> ContactModel:
-    """The model a train run selected, rebuilt from its run folder (checkpoints load with weights_only=True)."""
-    record = Path(train_dir) / "fitted.json"
-    if cfg.model.kind == "analytical":
-        model = instantiate(cfg.model.contact_model)
-        if not record.is_file() and not model.learns:
-            return model  # nothing to fit (MuJoCo's defaults): no train run needed
-    if not record.is_file():
-        raise FileNotFoundError(
-            f"{record}: no fitted {cfg.model.name} model there; run train.py with the same model, dataset and budget "
-            "first"
-        )
-    folders.check_signature(cfg, Path(train_dir), "score the model of")
-    if cfg.model.kind == "analytical":
-        model.load_fitted_state(folders.read_fitted_state(record))
-        return model
-    checkpoint = Path(train_dir) / "checkpoints" / json.loads(record.read_text())["checkpoint"]
-    return _load_module(cfg, dataset.for_models(), checkpoint).to_contact_model()
-
-
 # ---------------------------------------------------------------- entry points
 
 
@@ -197,7 +142,7 @@ def _configure_torch(cfg: DictConfig) -> None:
 
 
 def _score_and_write(
-    cfg: DictConfig, model: ContactModel, observed: Observed, split: str, out_dir: Path, logger
+    cfg: DictConfig, model: ContactModel, observed: restore.Observed, split: str, out_dir: Path, logger
 ) -> dict:
     dataset = observed.dataset
     score = score_model(
@@ -282,7 +227,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
-        model = load_fitted(cfg, observed.dataset, _train_dir(cfg))
+        model = restore.load_fitted(cfg, observed.dataset, _train_dir(cfg))
         document = _score_and_write(cfg, model, observed, cfg.split, output_dir, logger)
         status = "success"
     finally:

@@ -17,11 +17,12 @@ from matplotlib.colors import to_rgb
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from omegaconf import OmegaConf
 
-from contactbench import runs
+from contactbench import restore
 from contactbench.evaluation.figures import new_figure, observed_plainly, save_figure
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import make_context
+from contactbench.recordings import read_recordings
 
 log = logging.getLogger(__name__)
 COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
@@ -43,11 +44,11 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
     predicted, truth = {}, None
     for train_dir in train_dirs:
         cfg = OmegaConf.load(train_dir / ".hydra" / "config.yaml")
-        observed = runs.load_dataset(cfg, ["test"])
+        observed = restore.observed(cfg, read_recordings(Path(cfg.dataset.path), ["test"]))
         dataset = observed.dataset
         chosen = range(min(trajectories, dataset.split("test").n_trajectories))
         test = dataset.split("test").select(chosen)
-        model = runs.load_fitted(cfg, dataset, train_dir)
+        model = restore.load_fitted(cfg, dataset, train_dir)
         predicted[cfg.model.name] = model.rollout(dataset.scene, make_context(test, dataset.dt, cfg.context_frames))
         truth_split = observed.truth.split("test").select(chosen)
         truth, lengths = truth_split.poses, truth_split.lengths

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from contactbench.kinematics import world_vertices
-from contactbench.recordings import Recordings
+from contactbench.recordings import Scene
 
 DEFAULT_COLLISION_RADIUS_FRACTION = 0.8
 
@@ -40,7 +40,7 @@ class MeshScene:
     faces: np.ndarray  # [F, 3] node indices of every body's triangles, counter-clockwise seen from outside
 
     @classmethod
-    def from_recordings(cls, dataset: Recordings) -> MeshScene:
+    def of(cls, dataset: Scene) -> MeshScene:
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
         body_starts = np.cumsum([0] + [len(mesh.vertices) for mesh in meshes])
         undirected = np.concatenate([mesh.edges + start for mesh, start in zip(meshes, body_starts)])

@@ -121,7 +121,7 @@ class GNNDataModule(pl.LightningDataModule):
         super().__init__()
         check_history_fits(context_frames, velocity_history)
         self.dataset = dataset
-        self.scene = MeshScene.from_recordings(dataset)
+        self.scene = MeshScene.of(dataset)
         # A batch of a fixed number of vertices costs about the same for a cube or five: budgets hold for every variant.
         self.batch_size = batch_size if batch_vertices is None else max(1, batch_vertices // self.scene.n_nodes)
         self.num_workers = num_workers
@@ -189,7 +189,7 @@ class GNNModule(pl.LightningModule):
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
         self.dataset = dataset
-        scene = MeshScene.from_recordings(dataset)
+        scene = MeshScene.of(dataset)
         options = {
             "dt": dataset.dt,
             "floor_z": dataset.floor_z,

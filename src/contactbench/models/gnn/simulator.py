@@ -203,7 +203,7 @@ class LearnedSimulator(nn.Module):
 def check_same_scene(simulator: LearnedSimulator, dataset: Scene, context: Context) -> None:
     """Refuse a dataset whose meshes differ from the training scene's, or a context too short for the history."""
     scene = simulator.scene
-    given = MeshScene.from_recordings(dataset)
+    given = MeshScene.of(dataset)
     if (
         given.n_nodes != scene.n_nodes
         or not np.array_equal(given.mesh_edges, scene.mesh_edges)
