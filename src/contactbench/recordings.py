@@ -173,9 +173,7 @@ class Recordings(Scene):
     @property
     def scene(self) -> Scene:
         """The scene alone, without meta.generator (the hidden simulation parameters): what a rollout may see."""
-        meta = copy.deepcopy(self.meta)
-        meta.pop("generator", None)
-        return Scene(meta=meta, meshes=self.meshes, root=self.root)
+        return Scene(meta=self._meta_for_models(), meshes=self.meshes, root=self.root)
 
     def split(self, name: str) -> Split:
         if name not in self.splits:
@@ -185,9 +183,12 @@ class Recordings(Scene):
 
     def for_models(self, splits: Iterable[str] = ()) -> Recordings:
         """What a model may see: only the named splits, and no meta.generator (the hidden simulation parameters)."""
+        return replace(self, meta=self._meta_for_models(), splits={name: self.split(name) for name in splits})
+
+    def _meta_for_models(self) -> dict:
         meta = copy.deepcopy(self.meta)
         meta.pop("generator", None)
-        return replace(self, meta=meta, splits={name: self.split(name) for name in splits})
+        return meta
 
 
 # ---------------------------------------------------------------- validation

@@ -7,7 +7,7 @@ import numpy as np
 from contactbench.errors import ContactbenchError
 from contactbench.models.base import ContactModel
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Scene
+from contactbench.recordings import Scene
 from contactbench.sim.mujoco_scene import ContactParameters, scene_xml
 from contactbench.sim.rollout import rollout_context
 
@@ -43,7 +43,7 @@ class MujocoContactModel(ContactModel):
     def contact_parameters(self, dataset: Scene) -> ContactParameters:
         return self.parameters if self.parameters is not None else preset_parameters(self.preset, dataset.n_bodies)
 
-    def scene_xml(self, dataset: Recordings) -> str:
+    def scene_xml(self, dataset: Scene) -> str:
         return scene_xml(dataset, self.contact_parameters(dataset), self.substeps)
 
     def rollout(self, scene: Scene, context: Context) -> np.ndarray:
