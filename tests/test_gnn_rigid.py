@@ -12,7 +12,8 @@ import torch
 from conftest import falling_cubes
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
-from pytorch_lightning.callbacks import EMAWeightAveraging, ModelCheckpoint
+from pytorch_lightning.callbacks import ModelCheckpoint, WeightAveraging
+from torch.optim.swa_utils import get_ema_multi_avg_fn
 
 from contactbench import metrics, rotations
 from contactbench.config import CONFIG_DIR, REPO_ROOT
@@ -298,7 +299,7 @@ def test_a_run_resumed_mid_epoch_trains_exactly_as_an_uninterrupted_one(tmp_path
             max_steps=max_steps,
             limit_val_batches=0,
             logger=False,
-            callbacks=[*callbacks, EMAWeightAveraging(decay=0.9)],  # as conf/model/gnn.yaml: the average too
+            callbacks=[*callbacks, WeightAveraging(multi_avg_fn=get_ema_multi_avg_fn(0.9))],  # as gnn.yaml
             enable_checkpointing=bool(callbacks),
             enable_progress_bar=False,
             enable_model_summary=False,
