@@ -43,13 +43,16 @@ SHAPES = {
     "octahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=8),
     "icosahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=20),
     "tetrahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=4),
+    "truncated_octahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=14),
+    "rhombicuboctahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=26),
 }
-SETS = ("tuning", "held_out", "held_out_2")
+SETS = ("tuning", "held_out", "held_out_2", "held_out_3")
 # Where each outside-library effect acts: an `unexplained` verdict must locate the mismatch in one of these phases.
 ACTS_IN = {
     "coriolis": ("free", "sliding", "rolling"),
     "floor_viscosity": ("sliding", "rolling"),
     "floor_centring": ("sliding", "rolling", "rest"),
+    "spin_damping": ("free", "sliding", "rolling"),
 }
 
 
@@ -105,7 +108,31 @@ def cases() -> list[dict]:
         case("icosahedron", ("floor_viscosity",), 1.5, seed=7, velocities=False, kind="held_out_2"),
         case("cube", ("floor_centring",), 2.0, seed=7, velocities=False, kind="held_out_2"),
     ]
-    return tuning + held + second
+    # Written after held_out_2 had been seen (the open world's contact margin came from its tetrahedron null), run
+    # once: a new seed, two shapes never diagnosed, four nulls (a tetrahedron again), every library effect, two at
+    # once, seven cases without velocities, and a fourth outside effect the diagnosis was never developed on.
+    third = [
+        case("cube", seed=11, velocities=False, kind="held_out_3"),
+        case("truncated_octahedron", seed=11, kind="held_out_3"),
+        case("rhombicuboctahedron", seed=11, velocities=False, kind="held_out_3"),
+        case("tetrahedron", seed=11, kind="held_out_3"),
+        case("truncated_octahedron", ("air_drag",), 2.0, seed=11, velocities=False, kind="held_out_3"),
+        case("rhombicuboctahedron", ("wind",), 1.5, seed=11, kind="held_out_3"),
+        case("truncated_octahedron", ("rolling_friction",), 2.0, seed=11, kind="held_out_3"),
+        case("cube", ("torsional_friction",), 2.0, seed=11, kind="held_out_3"),
+        case("cube", ("anisotropic_friction",), 1.5, seed=11, velocities=False, kind="held_out_3"),
+        case("rhombicuboctahedron", ("com_offset",), 2.0, seed=11, kind="held_out_3"),
+        case("cube", ("inertia_mismatch",), 2.0, seed=11, velocities=False, kind="held_out_3"),
+        case("tetrahedron", ("floor_offset",), 1.0, seed=11, kind="held_out_3"),
+        case("truncated_octahedron", ("floor_tilt",), 1.5, seed=11, velocities=False, kind="held_out_3"),
+        case("cube", ("gravity_scale",), 2.0, seed=11, kind="held_out_3"),
+        case("cube", ("com_offset", "floor_tilt"), 1.5, seed=11, kind="held_out_3"),
+        case("cube", ("spin_damping",), 1.0, seed=11, kind="held_out_3"),
+        case("truncated_octahedron", ("coriolis",), 1.0, seed=11, velocities=False, kind="held_out_3"),
+        case("cube", ("floor_viscosity",), 2.0, seed=11, kind="held_out_3"),
+        case("rhombicuboctahedron", ("floor_centring",), 1.5, seed=11, velocities=False, kind="held_out_3"),
+    ]
+    return tuning + held + second + third
 
 
 def case_name(case: dict) -> str:

@@ -225,3 +225,17 @@ def test_effects_outside_the_library_do_what_they_say_and_have_no_library_name()
 
     for name in ("floor_viscosity", "floor_centring"):
         assert slide(ConcealedEffects.named([name])) < slide(ConcealedEffects()) - 0.01, name
+
+
+def test_spin_damping_slows_a_free_spin_at_its_rate_and_leaves_the_flight_alone():
+    effects = ConcealedEffects.named(["spin_damping"], 1.0)
+    spin = (2.0, 0.0, 0.0, 3.0, -4.0, 5.0)
+    _, velocities = fly(effects, velocity=spin)
+    _, plain_velocities = fly(ConcealedEffects(), velocity=spin)
+    # a cube's inertia is isotropic: d w / dt = -rate w, integrated as PyBullet steps (semi-implicit Euler)
+    ratio = np.linalg.norm(velocities[1:, 0, 3:], axis=-1) / np.linalg.norm(velocities[:-1, 0, 3:], axis=-1)
+    np.testing.assert_allclose(ratio, 1 - effects.spin_damping * SETTINGS.dt, rtol=1e-6)
+    np.testing.assert_allclose(velocities[..., :3], plain_velocities[..., :3], atol=1e-9)
+    np.testing.assert_allclose(
+        plain_velocities[:, 0, 3:], np.broadcast_to(spin[3:], plain_velocities[:, 0, 3:].shape), atol=1e-9
+    )

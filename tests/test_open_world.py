@@ -9,6 +9,7 @@ from test_diagnose import SMALL, concealed, diagnose
 
 from contactbench.diagnosis import open_world
 from contactbench.diagnosis.phases import FREE, PHASES, SLIDING
+from contactbench.diagnosis.pipeline import Decision
 
 DT = 0.01
 
@@ -65,3 +66,10 @@ def test_physics_outside_the_library_is_unexplained_and_located_where_it_acts(tm
     assert found["located"]["output"] in ("linear_x", "linear_y")
     report = (tmp_path / "out" / "report.md").read_text()
     assert "Something the library does not list is missing" in report and "| linear_" in report
+
+
+def test_a_correction_in_contact_must_close_more_than_one_in_free_flight():
+    # engines differ in contact with nothing concealed, not in free flight: the open world's margin says so
+    decision = Decision(margin=0.05, contact_margin=0.10)
+    assert decision.open_world_margin(PHASES[FREE]) == 0.05
+    assert all(decision.open_world_margin(phase) == 0.10 for phase in PHASES if phase != PHASES[FREE])

@@ -122,7 +122,8 @@ def _open_world_lines(found: dict | None) -> list[str]:
         return lines + ["No term improved the train BIC.", ""]
     lines += [
         f"Val: closes {found['val_improvement']:.1%} (95% CI {found['ci95'][0]:.1%} to {found['ci95'][1]:.1%}), "
-        f"dBIC {found['delta_bic']:.0f}: {'passes' if found['passes'] else 'does not pass'}.",
+        f"dBIC {found['delta_bic']:.0f}, located in {found['located']['phase']} frames (margin there "
+        f"{found['margin']:.0%}): {'passes' if found['passes'] else 'does not pass'}.",
         "",
         "| output | phase | depends on | coefficient |",
         "|---|---|---|---|",

@@ -58,6 +58,7 @@ class BulletScene:
         j, k = [1, 0, 0], [2, 2, 1]
         self.drag_force = 2.0 * effects.fluid_density * half[j] * half[k]
         self.drag_torque = 0.5 * effects.fluid_density * half * (half[j] ** 4 + half[k] ** 4)
+        self.spin_damping_torque = effects.spin_damping * true_inertia  # per body axis, times the spin there
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self.floor, self.bodies = self._build(mesh)
@@ -239,7 +240,7 @@ class BulletScene:
             relative = rotation.T @ (linear - wind)
             spin = rotation.T @ angular
             force = rotation @ (-self.drag_force * np.abs(relative) * relative)
-            torque = rotation @ (-self.drag_torque * np.abs(spin) * spin)
+            torque = rotation @ (-self.drag_torque * np.abs(spin) * spin - self.spin_damping_torque * spin)
             acceleration = -2 * effects.coriolis * np.cross([0.0, 0.0, 1.0], linear)
             if (effects.floor_viscosity or effects.floor_centring) and pybullet.getContactPoints(
                 body, self.floor, physicsClientId=self.client

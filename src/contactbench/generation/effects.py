@@ -22,7 +22,7 @@ EFFECT_NAMES = (
 )
 # Physics PyBullet can switch on that the diagnosis library does not list (no MuJoCo model of them there): they
 # test whether diagnose.py says `unexplained` instead of a wrong name or `none`.
-OUTSIDE_LIBRARY = ("coriolis", "floor_viscosity", "floor_centring")
+OUTSIDE_LIBRARY = ("coriolis", "floor_viscosity", "floor_centring", "spin_damping")
 # Strength 1 of each effect. The tosses are short and slow (about 1 m/s, 0.15 s of flight, then sliding), so
 # the fluid is dense: at 60 kg/m^3 drag decelerates a sliding cube by about 1 m/s^2 against friction's ~5.
 # Rolling and spinning friction start at 0.01 m: at 0.005 m the first blind proof missed both (their short-horizon
@@ -46,10 +46,11 @@ class ConcealedEffects:
     # PyBullet's gravity / the recorded meta.gravity: what a tracker whose time base or length scale is off shows
     # (the real ContactNets cube falls at 0.978 g in free flight).
     gravity_scale: float = 1.0
-    # Outside the library (OUTSIDE_LIBRARY), each an acceleration of every body's centre of mass:
+    # Outside the library (OUTSIDE_LIBRARY), each an acceleration of every body's centre of mass, or its spin:
     coriolis: float = 0.0  # rad/s: in any phase, -2 coriolis z x v: the recordings' frame turns about the vertical
     floor_viscosity: float = 0.0  # 1/s: while touching the floor, -floor_viscosity * (v_x, v_y): a viscous floor
     floor_centring: float = 0.0  # 1/s^2: while touching the floor, -floor_centring * (x, y): a floor bowl
+    spin_damping: float = 0.0  # 1/s: in any phase a torque -spin_damping * I w: torque-free spin decays as exp(-rate t)
 
     def __post_init__(self):
         freeze_numbers(self, vectors=("wind", "floor_friction_scale", "com_offset", "inertia_scale", "floor_tilt"))
@@ -93,6 +94,8 @@ class ConcealedEffects:
                 settings["floor_viscosity"] = 1.5 * s
             elif name == "floor_centring":  # ~1 m/s^2 a fifth of a metre from the floor's origin
                 settings["floor_centring"] = 5.0 * s
+            elif name == "spin_damping":  # a cube spinning at 10 rad/s loses 3 rad/s over 0.15 s of flight
+                settings["spin_damping"] = 2.0 * s
         return cls(**settings)
 
     def truth(self, names) -> list[dict]:
@@ -115,13 +118,16 @@ class ConcealedEffects:
             "coriolis": {"coriolis": self.coriolis},
             "floor_viscosity": {"floor_viscosity": self.floor_viscosity},
             "floor_centring": {"floor_centring": self.floor_centring},
+            "spin_damping": {"spin_damping": self.spin_damping},
         }
         return [{"name": name, "parameters": values[name]} for name in names]
 
     @property
     def applied_forces(self) -> bool:
         """Whether forces must be applied before every engine step (drag or an outside-library effect)."""
-        return self.fluid_density > 0 or bool(self.coriolis or self.floor_viscosity or self.floor_centring)
+        return self.fluid_density > 0 or bool(
+            self.coriolis or self.floor_viscosity or self.floor_centring or self.spin_damping
+        )
 
 
 NONE = ConcealedEffects()
