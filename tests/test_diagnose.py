@@ -151,3 +151,14 @@ def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_grav
     assert verdict == ("effect" if document["heldout"]["confirmed"] else "unconfirmed")
     report = (tmp_path / "weak_out" / "report.md").read_text()
     assert "## First, model-free: free flight" in report and "confirmed on test" in report
+
+
+def test_a_contact_dimension_switched_on_at_nothing_is_not_named():
+    from contactbench.diagnosis.library import CONTACT_DIMENSION_RESOLUTION, library
+
+    effects = library(0.1)
+    torsional = effects["torsional_friction"]
+    assert torsional.negligible({"torsional_friction": 5e-5})  # condim 4 with no torsional friction to speak of
+    assert not torsional.negligible({"torsional_friction": 0.02})
+    assert effects["rolling_friction"].negligible({"rolling_friction": 0.5 * CONTACT_DIMENSION_RESOLUTION})
+    assert not effects["floor_offset"].negligible({"floor_offset": 1e-6})  # continuous at zero: any size counts

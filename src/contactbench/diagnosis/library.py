@@ -33,6 +33,20 @@ class Effect:
     # A model-free measurement (free flight) shows this effect beyond its own practical margin on val: the effect
     # then counts as practically meaningful without closing the simulator-loss margin (it must still be significant).
     measured: bool = False
+    # The smallest fitted size that is this physics, where switching the effect on changes MuJoCo's contact model
+    # itself (condim 4 or 6): below it, what improves the fit is the switch, not the friction (a rhombicuboctahedron
+    # null "improved" 5% with torsional friction 5e-5 m). 0: every non-zero value counts.
+    resolution: float = 0.0
+
+    def negligible(self, reported: dict[str, float]) -> bool:
+        """Whether fitted values (reported units) all lie within `resolution` of the values that switch it off."""
+        return self.resolution > 0 and all(
+            abs(reported[p.name] - p.reported(p.start)) < self.resolution for p in self.parameters
+        )
+
+
+# Rolling and torsional friction at 0.005 m went unnoticed in the first blind proof; a fit under 1 mm is the switch.
+CONTACT_DIMENSION_RESOLUTION = 1e-3  # m
 
 
 GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
@@ -67,12 +81,14 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             (Parameter("rolling_friction", 0.0, 0.05, 0.0),),
             "rolling resistance",
             "condim 6, rolling friction",
+            resolution=CONTACT_DIMENSION_RESOLUTION,
         ),
         Effect(
             "torsional_friction",
             (Parameter("torsional_friction", 0.0, 0.05, 0.0),),
             "torsional (spin) friction",
             "condim 4, torsional friction",
+            resolution=CONTACT_DIMENSION_RESOLUTION,
         ),
         Effect(
             "anisotropic_friction",

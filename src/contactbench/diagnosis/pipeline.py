@@ -265,7 +265,9 @@ class Diagnosis:
                     "delta_bic": float(delta_bic),
                     "parameters": trial.reported(trial_values)[effect.name],
                 }
-                record["passes"] = bool(ci[0] > 0 and self.decision.meaningful(closes, effect) and delta_bic < 0)
+                record["negligible"] = negligible = effect.negligible(record["parameters"])
+                meaningful = self.decision.meaningful(closes, effect) and not negligible
+                record["passes"] = bool(ci[0] > 0 and meaningful and delta_bic < 0)
                 if effect.measured:
                     record["measured_model_free"] = True
                 records.append(record)
@@ -336,7 +338,8 @@ class Diagnosis:
                 other_val, current_val, self.budget.bootstrap, self.rng, self.decision.confidence
             )
             closes = float((other_val.mean() - current_val.mean()) / base_val.mean())
-            kept = bool(ci[0] > 0 and self.decision.meaningful(closes, effect))
+            negligible = effect.negligible(current.reported(values)[effect.name])
+            kept = bool(ci[0] > 0 and self.decision.meaningful(closes, effect) and not negligible)
             self.given_the_others.append(
                 {
                     "name": effect.name,

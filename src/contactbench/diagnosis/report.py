@@ -187,7 +187,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | "
             f"{c['closes_of_base_loss']:.3f} | "
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''}"
-            f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''} |"
+            f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''}"
+            f"{' (fitted below its resolution: the condim switch, not the friction)' if c.get('negligible') else ''} |"
         )
     lines += ["", *_open_world_lines(document.get("open_world"))]
     located = document["located"]
