@@ -55,7 +55,7 @@ def training_samples_per_second(
             dataset, batch_size=batch_size, velocity_history=module.hparams.velocity_history, rigid=rigid
         ).train_dataloader()
     )
-    optimizer = torch.optim.Adam(module.parameters(), lr=module.hparams.lr)
+    optimizer = module.optimizer()  # the one training uses
 
     def step():
         batch = next(loader).to(module.device)

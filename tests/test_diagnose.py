@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from test_pipeline import compose_config, run_entry_point
 
@@ -162,3 +163,26 @@ def test_a_contact_dimension_switched_on_at_nothing_is_not_named():
     assert not torsional.negligible({"torsional_friction": 0.02})
     assert effects["rolling_friction"].negligible({"rolling_friction": 0.5 * CONTACT_DIMENSION_RESOLUTION})
     assert not effects["floor_offset"].negligible({"floor_offset": 1e-6})  # continuous at zero: any size counts
+
+
+def test_wind_that_gains_nothing_on_air_drag_does_not_pass():
+    from types import SimpleNamespace
+
+    from contactbench.diagnosis.pipeline import Budget, Decision, Diagnosis
+
+    rng = np.random.default_rng(0)
+    drag = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses
+    steps = SimpleNamespace(budget=Budget(bootstrap=500), rng=rng, decision=Decision())
+
+    def fitted(wind_val):
+        return [
+            ({"name": "air_drag", "passes": False}, None, None, drag, None),
+            ({"name": "wind", "passes": True}, None, None, wind_val, None),
+        ]
+
+    same = fitted(drag * rng.uniform(0.97, 1.03, size=60))  # the extra parameters buy noise
+    Diagnosis.require_more_than_special_cases(steps, same)
+    assert not same[1][0]["passes"] and same[1][0]["no_better_than"] == "air_drag"
+    better = fitted(drag * 0.8)  # a wind the data show
+    Diagnosis.require_more_than_special_cases(steps, better)
+    assert better[1][0]["passes"] and "no_better_than" not in better[1][0]

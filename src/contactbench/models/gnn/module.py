@@ -218,10 +218,12 @@ class GNNModule(pl.LightningModule):
         if stage == "fit" and not bool(self.simulator.normalisation_fitted):
             self.simulator.fit_normalisation(self.dataset.split("train"))
 
+    def optimizer(self) -> torch.optim.Optimizer:
+        """Adam over every parameter, fused: one kernel for all tensors instead of a Python loop over them."""
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=True)
+
     def configure_optimizers(self):
-        optimizer = torch.optim.Adam(
-            self.parameters(), lr=self.hparams.lr, fused=True
-        )  # one kernel, not a loop per tensor
+        optimizer = self.optimizer()
         if self.hparams.lr_schedule == "constant":
             return optimizer
         # cosine decay to 1% of lr over the run's max_steps: large steps early, fine ones while selecting on val
