@@ -154,15 +154,23 @@ def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_grav
     assert "## First, model-free: free flight" in report and "confirmed on test" in report
 
 
-def test_a_contact_dimension_switched_on_at_nothing_is_not_named():
-    from contactbench.diagnosis.library import CONTACT_DIMENSION_RESOLUTION, library
+def test_an_effect_fitted_below_its_resolution_is_not_named():
+    from contactbench.diagnosis.library import LENGTH_RESOLUTION, library
 
     effects = library(0.1)
     torsional = effects["torsional_friction"]
     assert torsional.negligible({"torsional_friction": 5e-5})  # condim 4 with no torsional friction to speak of
     assert not torsional.negligible({"torsional_friction": 0.02})
-    assert effects["rolling_friction"].negligible({"rolling_friction": 0.5 * CONTACT_DIMENSION_RESOLUTION})
-    assert not effects["floor_offset"].negligible({"floor_offset": 1e-6})  # continuous at zero: any size counts
+    assert effects["rolling_friction"].negligible({"rolling_friction": 0.5 * LENGTH_RESOLUTION})
+    assert effects["floor_offset"].negligible({"floor_offset": 3e-4})  # within the soft contact's sinking
+    assert not effects["floor_offset"].negligible({"floor_offset": 8e-3})
+    assert not effects["air_drag"].negligible({"fluid_density": 1e-3})  # no resolution: any size counts
+    inertia = {"inertia_scale_x": 1.01, "inertia_scale_y": 0.99, "inertia_scale_z": 1.0}
+    assert effects["inertia_mismatch"].negligible(inertia)
+    assert not effects["inertia_mismatch"].negligible({**inertia, "inertia_scale_z": 0.85})  # one axis is enough
+    wind = effects["wind"]
+    assert wind.negligible({"fluid_density": 60.9, "wind_x": 0.0012, "wind_y": -0.0001})  # air drag, not wind
+    assert not wind.negligible({"fluid_density": 60.0, "wind_x": 0.9, "wind_y": 0.5})
 
 
 def test_wind_that_gains_nothing_on_air_drag_does_not_pass():

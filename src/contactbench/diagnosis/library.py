@@ -19,6 +19,8 @@ class Parameter:
     upper: float
     start: float  # internal value a fit starts from; for an effect, the value that switches it off (but see wind)
     log: bool = False
+    # The smallest departure from the switch-off value (reported units) that is this physics; 0: any (see Effect).
+    resolution: float = 0.0
 
     def reported(self, internal: float) -> float:
         return float(np.exp(internal)) if self.log else float(internal)
@@ -33,20 +35,25 @@ class Effect:
     # A model-free measurement (free flight) shows this effect beyond its own practical margin on val: the effect
     # then counts as practically meaningful without closing the simulator-loss margin (it must still be significant).
     measured: bool = False
-    # The smallest fitted size that is this physics, where switching the effect on changes MuJoCo's contact model
-    # itself (condim 4 or 6): below it, what improves the fit is the switch, not the friction (a rhombicuboctahedron
-    # null "improved" 5% with torsional friction 5e-5 m). 0: every non-zero value counts.
-    resolution: float = 0.0
 
     def negligible(self, reported: dict[str, float]) -> bool:
-        """Whether fitted values (reported units) all lie within `resolution` of the values that switch it off."""
-        return self.resolution > 0 and all(
-            abs(reported[p.name] - p.reported(p.start)) < self.resolution for p in self.parameters
-        )
+        """Whether the fitted values (reported units) of every parameter with a resolution lie within it of the value
+        that switches the effect off: the effect is then not this physics, whatever the fit gained (see below)."""
+        resolved = [p for p in self.parameters if p.resolution > 0]
+        return bool(resolved) and all(abs(reported[p.name] - p.reported(p.start)) < p.resolution for p in resolved)
 
 
-# Rolling and torsional friction at 0.005 m went unnoticed in the first blind proof; a fit under 1 mm is the switch.
-CONTACT_DIMENSION_RESOLUTION = 1e-3  # m
+# Resolutions: below them a fitted effect is a knob for the contact's model-form error, not the physics it names.
+# Lengths: MuJoCo's soft contacts sink about a millimetre at rest, so a floor or centre of mass moved by less is the
+# contact's softness (an icosahedron's drag came with a 0.3 mm floor offset that "closed" 13%), and switching rolling
+# or torsional friction on changes MuJoCo's contact itself (condim 6 or 4: a rhombicuboctahedron null "improved" 5%
+# at 5e-5 m; 0.005 m went unnoticed in the first blind proof).
+LENGTH_RESOLUTION = 1e-3  # m
+RATIO_RESOLUTION = 0.02  # inertia scales, friction anisotropy
+ANGLE_RESOLUTION = 2e-3  # rad: a millimetre over the half metre a toss travels
+# A wind under a tenth of the tosses' ~1 m/s is air drag fitted beside other base parameters (a cube's true drag was
+# named wind at 1 mm/s, an octahedron's at 1.5 cm/s).
+WIND_RESOLUTION = 0.1  # m/s
 
 
 GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
@@ -70,53 +77,57 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             "wind",
             (
                 Parameter("fluid_density", 0.0, 600.0, 30.0),
-                Parameter("wind_x", -5.0, 5.0, 0.0),
-                Parameter("wind_y", -5.0, 5.0, 0.0),
+                Parameter("wind_x", -5.0, 5.0, 0.0, resolution=WIND_RESOLUTION),
+                Parameter("wind_y", -5.0, 5.0, 0.0, resolution=WIND_RESOLUTION),
             ),
             "a steady wind",
             "option density + wind",
         ),
         Effect(
             "rolling_friction",
-            (Parameter("rolling_friction", 0.0, 0.05, 0.0),),
+            (Parameter("rolling_friction", 0.0, 0.05, 0.0, resolution=LENGTH_RESOLUTION),),
             "rolling resistance",
             "condim 6, rolling friction",
-            resolution=CONTACT_DIMENSION_RESOLUTION,
         ),
         Effect(
             "torsional_friction",
-            (Parameter("torsional_friction", 0.0, 0.05, 0.0),),
+            (Parameter("torsional_friction", 0.0, 0.05, 0.0, resolution=LENGTH_RESOLUTION),),
             "torsional (spin) friction",
             "condim 4, torsional friction",
-            resolution=CONTACT_DIMENSION_RESOLUTION,
         ),
         Effect(
             "anisotropic_friction",
-            (Parameter("friction_anisotropy", -2.0, 2.0, 0.0, log=True),),
+            (Parameter("friction_anisotropy", -2.0, 2.0, 0.0, log=True, resolution=RATIO_RESOLUTION),),
             "floor friction that differs between directions",
             "contact pair friction, x vs y tangent",
         ),
         Effect(
             "com_offset",
-            tuple(Parameter(f"com_offset_{axis}", -reach, reach, 0.0) for axis in "xyz"),
+            tuple(Parameter(f"com_offset_{axis}", -reach, reach, 0.0, resolution=LENGTH_RESOLUTION) for axis in "xyz"),
             "a centre of mass away from the mesh's centroid",
             "body inertial pos",
         ),
         Effect(
             "inertia_mismatch",
-            tuple(Parameter(f"inertia_scale_{axis}", -0.7, 0.7, 0.0, log=True) for axis in "xyz"),
+            tuple(
+                Parameter(f"inertia_scale_{axis}", -0.7, 0.7, 0.0, log=True, resolution=RATIO_RESOLUTION)
+                for axis in "xyz"
+            ),
             "an inertia other than the uniform-density mesh's",
             "body fullinertia",
         ),
         Effect(
             "floor_offset",
-            (Parameter("floor_offset", -reach, reach, 0.0),),
+            (Parameter("floor_offset", -reach, reach, 0.0, resolution=LENGTH_RESOLUTION),),
             "a floor higher or lower than recorded",
             "floor geom pos",
         ),
         Effect(
             "floor_tilt",
-            (Parameter("floor_tilt_x", -0.15, 0.15, 0.0), Parameter("floor_tilt_y", -0.15, 0.15, 0.0)),
+            (
+                Parameter("floor_tilt_x", -0.15, 0.15, 0.0, resolution=ANGLE_RESOLUTION),
+                Parameter("floor_tilt_y", -0.15, 0.15, 0.0, resolution=ANGLE_RESOLUTION),
+            ),
             "a tilted floor",
             "floor geom quat",
         ),
