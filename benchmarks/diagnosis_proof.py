@@ -10,12 +10,13 @@ as `python diagnose.py` (quick budget unless --budget), and only then scored aga
 - a null: verdict `none` (a name or `unexplained` is a false alarm).
 
 The "tuning" cases are the ones the method was developed on; the "held_out" cases (other seeds, strengths and
-shapes, no recorded velocities, two effects at once) were run to report, and then looked into; the "held_out_2"
-cases (another seed, icosahedra and tetrahedra) were written after that and run once. For named cases it also reports
+shapes, no recorded velocities, two effects at once) were run to report, and then looked into; each later set
+("held_out_2" ... "held_out_6": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
+changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py                       # 57 cases, about an hour on 2 cores
+    python benchmarks/diagnosis_proof.py --set held_out_6      # one set (17-21 cases, 15-20 min on 2 cores)
     python benchmarks/diagnosis_proof.py --only floor_tilt      # the cases with floor_tilt
 """
 

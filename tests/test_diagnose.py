@@ -165,6 +165,8 @@ def test_an_effect_fitted_below_its_resolution_is_not_named():
     assert effects["floor_offset"].negligible({"floor_offset": 3e-4})  # within the soft contact's sinking
     assert not effects["floor_offset"].negligible({"floor_offset": 8e-3})
     assert not effects["air_drag"].negligible({"fluid_density": 1e-3})  # no resolution: any size counts
+    gravity = library(0.1, gravity_scale=0.978)["gravity_scale"]  # its fit starts at the free-flight measurement
+    assert gravity.negligible({"gravity_scale": 1.00008}) and not gravity.negligible({"gravity_scale": 0.978})
     inertia = {"inertia_scale_x": 1.01, "inertia_scale_y": 0.99, "inertia_scale_z": 1.0}
     assert effects["inertia_mismatch"].negligible(inertia)
     assert not effects["inertia_mismatch"].negligible({**inertia, "inertia_scale_z": 0.85})  # one axis is enough
