@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from hydra.utils import get_class, instantiate
+from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from contactbench import runs
@@ -104,7 +104,7 @@ def test_every_config_composes_resolves_and_instantiates(entry: str, hydra_confi
             continue
         resolved = OmegaConf.to_container(cfg, resolve=True)  # every interpolation and resolver
         for target in targets(resolved):
-            assert get_class(target), f"{where}: {target}"
+            assert callable(get_object(target)), f"{where}: {target}"
         check_instantiable(cfg, tmp_path, where)
 
 
