@@ -18,7 +18,7 @@ class Parameter:
     name: str  # as reported; a "log" parameter is fitted as the logarithm of this value
     lower: float  # bounds of the fitted (internal) value
     upper: float
-    start: float  # internal value a fit starts from; for an effect, the value that switches it off (but see wind)
+    start: float  # internal value a fit starts from; for an effect, the value that switches it off (else `off`)
     log: bool = False
     # The smallest departure from the switch-off value (reported units) that is this physics; 0: any (see Effect).
     resolution: float = 0.0
@@ -61,7 +61,7 @@ ANGLE_RESOLUTION = 2e-3  # rad: a millimetre over the half metre a toss travels
 WIND_RESOLUTION = 0.1  # m/s
 # gravity_scale: the free-flight check's margin (a dodecahedron null was named at 1.00008 g, "closing" 5%: the refit of
 # the base parameters the candidate brought, not gravity)
-
+GRAVITY_RESOLUTION = MARGIN
 
 GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
 
@@ -144,7 +144,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
         # squared residuals hide the small, steady free-flight signal from the screen's Gauss-Newton step.
         Effect(
             "gravity_scale",
-            (Parameter("gravity_scale", *GRAVITY_SCALE_BOUNDS, gravity_start, resolution=MARGIN, off=1.0),),
+            (Parameter("gravity_scale", *GRAVITY_SCALE_BOUNDS, gravity_start, resolution=GRAVITY_RESOLUTION, off=1.0),),
             "an apparent gravity other than meta.gravity: the tracker's time base (true frame interval sqrt(scale) dt) "
             "or length scale off, or meta.gravity wrong",
             "option gravity x scale",
