@@ -108,6 +108,16 @@ def _unexplained_sentence(found: dict) -> str:
     )
 
 
+def _refit_control_note(candidate: dict) -> str:
+    control = candidate.get("refit_control")
+    if control is None or control["passes"]:
+        return ""
+    return (
+        f" (against the model without it refitted from its values: {control['val_improvement']:.3f}, 95% CI "
+        f"{control['ci95'][0]:.3f} to {control['ci95'][1]:.3f}: the gain was the refit, not the effect)"
+    )
+
+
 def _special_case_note(candidate: dict) -> str:
     special = candidate.get("no_better_than")
     return f" (no better than its special case {special})" if special else ""
@@ -194,7 +204,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''}"
             f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''}"
             f"{' (fitted below its resolution: not this physics)' if c.get('negligible') else ''}"
-            f"{_special_case_note(c)} |"
+            f"{_special_case_note(c)}{_refit_control_note(c)} |"
         )
     lines += ["", *_open_world_lines(document.get("open_world"))]
     located = document["located"]
