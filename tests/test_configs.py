@@ -130,3 +130,19 @@ def check_instantiable(cfg: DictConfig, tmp_path: Path, where: str) -> None:
     logger = cfg.get("logger")
     if logger is not None and logger._target_.endswith(("CSVLogger", "TensorBoardLogger")):
         instantiate(logger, save_dir=str(tmp_path / "run"))
+
+
+def test_a_tuned_setting_applies_to_its_model_and_dataset_only_and_evaluate_finds_the_run(hydra_configs):
+    from contactbench.folders import signature_key
+
+    for tuned in options("tuned"):
+        model, dataset = next((m, tuned[len(m) + 1 :]) for m in options("model") if tuned.startswith(f"{m}_"))
+        assert dataset in options("dataset"), tuned
+        plain = OmegaConf.to_container(compose("train", overrides=[f"model={model}"]).model, resolve=False)
+        train = compose("train", overrides=[f"model={model}", f"dataset={dataset}"])
+        assert OmegaConf.to_container(train.model, resolve=False) != plain, tuned  # it changes something
+        evaluate = compose("evaluate", overrides=[f"model={model}", f"dataset={dataset}"])
+        assert signature_key(train) == signature_key(evaluate), tuned  # evaluate.py finds what train.py fitted
+    real = compose("train", overrides=["model=gnn", "variant=contactnets_cube"]).model.module.noise_std
+    simulated = compose("train", overrides=["model=gnn", "variant=frictioncubes_0.5"]).model.module.noise_std
+    assert real < simulated

@@ -196,3 +196,38 @@ def test_wind_that_gains_nothing_on_air_drag_does_not_pass():
     better = fitted(drag * 0.8)  # a wind the data show
     Diagnosis.require_more_than_special_cases(steps, better)
     assert better[1][0]["passes"] and "no_better_than" not in better[1][0]
+
+
+def test_a_candidate_is_judged_against_the_model_without_it_refitted_from_its_values():
+    from types import SimpleNamespace
+
+    from contactbench.diagnosis.library import Hypothesis, library
+    from contactbench.diagnosis.pipeline import Budget, Decision, Diagnosis
+
+    rng = np.random.default_rng(0)
+    base_val = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses of the model of the round
+    effect = library(0.1)["floor_offset"]
+    current = Hypothesis(1)
+    trial = current.with_effect(effect)
+    trial_values = trial.start()
+    candidate_val = 0.9 * base_val  # 10% better than the round's model: passes the rule against it
+
+    def judged(control_val, control_train):
+        steps = SimpleNamespace(
+            budget=Budget(bootstrap=500, lsq_iterations=2),
+            rng=rng,
+            decision=Decision(),
+            train_fit=SimpleNamespace(entries=1000, least_squares=lambda *_: (trial_values[:-1], control_train)),
+            val_losses=lambda *_: control_val,
+        )
+        steps.judge = lambda *args: Diagnosis.judge(steps, *args)
+        record = {"train_loss": 0.9, "negligible": False}
+        record.update(Diagnosis.judge(steps, effect, record, candidate_val, base_val, 1.0, base_val))
+        assert record["passes"]
+        Diagnosis.refit_control(steps, effect, record, current, trial, trial_values, candidate_val, 1.0, base_val)
+        return record
+
+    refit_alone = judged(0.905 * base_val, 0.905)  # the base refitted from the candidate's values gains as much
+    assert not refit_alone["passes"] and refit_alone["refit_control"]["val_improvement"] < 0.01
+    assert judged(0.98 * base_val, 0.98)["passes"]  # the refit gains a little, the effect much more
+    assert "refit_control" not in judged(base_val, 1.0)  # a refit that gains nothing on train changes nothing
