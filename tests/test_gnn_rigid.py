@@ -209,7 +209,7 @@ def test_gnn_paper_composes_with_the_papers_values():
     assert cfg.model.callbacks.checkpoint.monitor == "val/pos_err"
 
 
-@pytest.mark.parametrize("budget", ["smoke", "quick", "paper"])
+@pytest.mark.parametrize("budget", ["smoke", "sensitivity", "quick", "paper"])
 def test_gnn_is_the_rigid_model_at_every_budget(budget):
     cfg = compose_model("gnn", budget)
     assert cfg.model.module.rigid is True and cfg.model.datamodule.rigid is True

@@ -351,7 +351,7 @@ BAD_SETTINGS = {
     ),
     "a budget the model does not have": (
         ["model=gnn", "budget.name=tiny"],
-        "model gnn has no budget 'tiny' (expected one of smoke, quick, paper in its config's budgets)",
+        "model gnn has no budget 'tiny' (expected one of smoke, sensitivity, quick, paper in its config's budgets)",
     ),
     "zero diagnosis bootstrap": (["budget.diagnose.bootstrap=0"], "budget.diagnose.bootstrap is 0"),
     "negative friction": (
