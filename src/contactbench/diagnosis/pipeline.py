@@ -49,7 +49,8 @@ class Budget:
 class Decision:
     """When an effect counts: significantly better on val than the model of its round (paired bootstrap, 95%),
     closing at least `margin` of the BASE simulator's val loss (so a second effect must matter on the scale of the
-    original mismatch, not merely polish the first effect's model-form error), and a better BIC on train. An effect
+    original mismatch, not merely polish the first effect's model-form error), and a better BIC on train; then all of
+    it again against that model refitted from the effect's own values (Diagnosis.refit_control). An effect
     a model-free measurement already shows beyond that measurement's own margin (an apparent gravity in free flight)
     is practically meaningful by that measurement, and needs only the significance and the BIC.
 
@@ -618,7 +619,8 @@ def run_diagnosis(
             "confidence": decision.confidence,
             "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
             "closing >= margin of the base simulator's val loss (or, for gravity_scale, an apparent gravity measured "
-            "model-free in free flight on val), and delta BIC < 0 on train",
+            "model-free in free flight on val), and delta BIC < 0 on train; then the same against the model of its "
+            "round refitted from the candidate's own values, where that refit gains on train (the refit control)",
         },
         "budget": budget.__dict__,
         "robust_scale": steps.train_fit.scale,
