@@ -136,7 +136,8 @@ def test_a_tuned_setting_applies_to_its_model_and_dataset_only_and_evaluate_find
     from contactbench.folders import signature_key
 
     for tuned in options("tuned"):
-        model, dataset = next((m, tuned[len(m) + 1 :]) for m in options("model") if tuned.startswith(f"{m}_"))
+        model = max((m for m in options("model") if tuned.startswith(f"{m}_")), key=len)  # gnn_paper before gnn
+        dataset = tuned[len(model) + 1 :]
         assert dataset in options("dataset"), tuned
         plain = OmegaConf.to_container(compose("train", overrides=[f"model={model}"]).model, resolve=False)
         train = compose("train", overrides=[f"model={model}", f"dataset={dataset}"])
