@@ -11,7 +11,7 @@ as `python diagnose.py` (quick budget unless --budget), and only then scored aga
 
 The "tuning" cases are the ones the method was developed on; the "held_out" cases (other seeds, strengths and
 shapes, no recorded velocities, two effects at once) were run to report, and then looked into; each later set
-("held_out_2" ... "held_out_7": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
+("held_out_2" ... "held_out_8": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
 changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
@@ -47,7 +47,17 @@ SHAPES = {
     "truncated_octahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=14),
     "rhombicuboctahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=26),
 }
-SETS = ("tuning", "held_out", "held_out_2", "held_out_3", "held_out_4", "held_out_5", "held_out_6", "held_out_7")
+SETS = (
+    "tuning",
+    "held_out",
+    "held_out_2",
+    "held_out_3",
+    "held_out_4",
+    "held_out_5",
+    "held_out_6",
+    "held_out_7",
+    "held_out_8",
+)
 # Where each outside-library effect acts: an `unexplained` verdict must locate the mismatch in one of these phases.
 ACTS_IN = {
     "coriolis": ("free", "sliding", "rolling"),
@@ -228,7 +238,33 @@ def cases() -> list[dict]:
         case("truncated_octahedron", ("floor_viscosity",), 2.0, seed=23, kind="held_out_7"),
         case("dodecahedron", ("spin_damping",), 2.0, seed=23, kind="held_out_7"),
     ]
-    return tuning + held + second + third + fourth + fifth + sixth + seventh
+    # Written after held_out_7 had been seen (right names left unconfirmed by the wide interval of full rollouts: a
+    # name is now confirmed on test by the short-horizon loss it was chosen on, full rollouts not getting worse),
+    # run once: seed 29, five nulls, every library effect, two pairs, every outside effect, shapes rotated.
+    eighth = [
+        case("octahedron", seed=29, kind="held_out_8"),
+        case("dodecahedron", seed=29, velocities=False, kind="held_out_8"),
+        case("cube", seed=29, kind="held_out_8"),
+        case("truncated_octahedron", seed=29, velocities=False, kind="held_out_8"),
+        case("tetrahedron", seed=29, kind="held_out_8"),
+        case("icosahedron", ("air_drag",), 1.5, seed=29, velocities=False, kind="held_out_8"),
+        case("cube", ("wind",), 1.5, seed=29, kind="held_out_8"),
+        case("dodecahedron", ("torsional_friction",), 2.0, seed=29, kind="held_out_8"),
+        case("rhombicuboctahedron", ("rolling_friction",), 2.0, seed=29, velocities=False, kind="held_out_8"),
+        case("octahedron", ("anisotropic_friction",), 1.5, seed=29, kind="held_out_8"),
+        case("truncated_octahedron", ("com_offset",), 1.5, seed=29, velocities=False, kind="held_out_8"),
+        case("icosahedron", ("inertia_mismatch",), 2.0, seed=29, kind="held_out_8"),
+        case("tetrahedron", ("floor_offset",), 1.5, seed=29, kind="held_out_8"),
+        case("cube", ("floor_tilt",), 1.0, seed=29, velocities=False, kind="held_out_8"),
+        case("dodecahedron", ("gravity_scale",), 2.0, seed=29, kind="held_out_8"),
+        case("icosahedron", ("air_drag", "com_offset"), 1.5, seed=29, kind="held_out_8"),
+        case("cube", ("floor_tilt", "inertia_mismatch"), 1.5, seed=29, kind="held_out_8"),
+        case("octahedron", ("coriolis",), 1.0, seed=29, kind="held_out_8"),
+        case("cube", ("floor_centring",), 1.5, seed=29, velocities=False, kind="held_out_8"),
+        case("dodecahedron", ("floor_viscosity",), 2.0, seed=29, kind="held_out_8"),
+        case("rhombicuboctahedron", ("spin_damping",), 2.0, seed=29, kind="held_out_8"),
+    ]
+    return tuning + held + second + third + fourth + fifth + sixth + seventh + eighth
 
 
 def case_name(case: dict) -> str:

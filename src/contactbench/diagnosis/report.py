@@ -82,7 +82,7 @@ def _verdict_sentence(document: dict) -> str:
     names = " and ".join(f"{e['name']} ({e['physics']})" for e in document["effects"])
     held_text = (
         f"held-out position error {held['base']['pos_err']:.4f} -> {held['augmented']['pos_err']:.4f} widths "
-        f"({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%})"
+        f"({held['improvement']:.1%}, 95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}){_short_text(held)}"
     )
     if not held["confirmed"]:
         return (
@@ -92,6 +92,16 @@ def _verdict_sentence(document: dict) -> str:
     return (
         f"Missing: {names}; modelling it changed the {held_text}; what remains lives in "
         f"{document['located_after']['where']}."
+    )
+
+
+def _short_text(held: dict) -> str:
+    short = held.get("short_horizon")
+    if short is None:
+        return ""
+    return (
+        f"; short-horizon loss on test {short['improvement']:.1%} lower (95% CI {short['ci95'][0]:.1%} to "
+        f"{short['ci95'][1]:.1%})"
     )
 
 
@@ -173,7 +183,9 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         f"| augmented | {held['augmented']['pos_err']:.4f} | {held['augmented']['rot_err_rad']:.4f} |",
         "",
         f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired "
-        f"bootstrap over {held['n_trajectories']} test trajectories).",
+        f"bootstrap over {held['n_trajectories']} test trajectories){_short_text(held)}. Confirmed where the "
+        "short-horizon interval is above zero and the full rollouts do not get worse: "
+        f"{'yes' if held['confirmed'] else 'no'}.",
         "",
         "## Effects",
         "",
