@@ -69,6 +69,7 @@ def test_smoke_diagnosis_writes_its_documents_and_ignores_meta_generator(tmp_pat
     named, verdict = bool(with_generator["effects"]), with_generator["verdict"]
     assert named == (verdict in ("effect", "unconfirmed"))
     assert (verdict == "unconfirmed") == (named and not with_generator["heldout"]["confirmed"])
+    assert_confirmation_rule(with_generator["heldout"], named)
     assert (verdict == "confounded") == bool(with_generator["confounded"])
     assert (verdict == "unexplained") == bool((with_generator["open_world"] or {}).get("passes"))
     assert {"verdict", "effects", "located", "heldout", "candidates"} <= set(with_generator)
@@ -136,6 +137,17 @@ def test_only_a_smoke_budget_is_called_inconclusive():
     assert "NOT conclusive" in budget_sentence(smoke)
 
 
+def assert_confirmation_rule(held: dict, named: bool) -> None:
+    """Confirmed on test: the short-horizon loss the name was chosen on improves there (interval above zero), and
+    the full rollouts' position error does not get worse."""
+    if not named:
+        assert held["short_horizon"] is None and not held["confirmed"]
+        return
+    short = held["short_horizon"]
+    assert short["ci95"][0] <= short["improvement"] <= short["ci95"][1]
+    assert held["confirmed"] == (short["ci95"][0] > 0 and held["improvement"] >= 0)
+
+
 def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_gravity_scale(tmp_path):
     # Strength 1 (0.95 g): its short-horizon loss lives almost all in impacts, so the effect closes about the 5%
     # margin of the simulator's loss; the free-flight measurement is what makes it practically meaningful.
@@ -150,6 +162,7 @@ def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_grav
     # 20 test tosses of full rollouts through engine-specific impacts are too few to confirm it on held-out data; the
     # verdict says which it was
     assert verdict == ("effect" if document["heldout"]["confirmed"] else "unconfirmed")
+    assert_confirmation_rule(document["heldout"], named=True)
     report = (tmp_path / "weak_out" / "report.md").read_text()
     assert "## First, model-free: free flight" in report and "confirmed on test" in report
 
