@@ -11,7 +11,7 @@ as `python diagnose.py` (quick budget unless --budget), and only then scored aga
 
 The "tuning" cases are the ones the method was developed on; the "held_out" cases (other seeds, strengths and
 shapes, no recorded velocities, two effects at once) were run to report, and then looked into; each later set
-("held_out_2" ... "held_out_8": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
+("held_out_2" ... "held_out_9": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
 changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
@@ -57,6 +57,7 @@ SETS = (
     "held_out_6",
     "held_out_7",
     "held_out_8",
+    "held_out_9",
 )
 # Where each outside-library effect acts: an `unexplained` verdict must locate the mismatch in one of these phases.
 ACTS_IN = {
@@ -264,7 +265,35 @@ def cases() -> list[dict]:
         case("dodecahedron", ("floor_viscosity",), 2.0, seed=29, kind="held_out_8"),
         case("rhombicuboctahedron", ("spin_damping",), 2.0, seed=29, kind="held_out_8"),
     ]
-    return tuning + held + second + third + fourth + fifth + sixth + seventh + eighth
+    # Written after held_out_8 had been seen (the screen dropped a hidden torsional friction: quick fitted 9 of 10
+    # effects; pairs lost their second effect to the base-loss margin; right names left unconfirmed by one horizon's
+    # interval: every effect is now fitted, a later round closes 10% of its round's model's loss, and a name is
+    # confirmed at either horizon), run once: seed 31, five nulls, every library effect, two pairs, every outside
+    # effect.
+    ninth = [
+        case("icosahedron", seed=31, kind="held_out_9"),
+        case("cube", seed=31, velocities=False, kind="held_out_9"),
+        case("rhombicuboctahedron", seed=31, kind="held_out_9"),
+        case("octahedron", seed=31, velocities=False, kind="held_out_9"),
+        case("dodecahedron", seed=31, kind="held_out_9"),
+        case("cube", ("air_drag",), 2.0, seed=31, kind="held_out_9"),
+        case("tetrahedron", ("wind",), 1.5, seed=31, velocities=False, kind="held_out_9"),
+        case("icosahedron", ("torsional_friction",), 2.0, seed=31, kind="held_out_9"),
+        case("cube", ("rolling_friction",), 1.5, seed=31, kind="held_out_9"),
+        case("truncated_octahedron", ("anisotropic_friction",), 2.0, seed=31, kind="held_out_9"),
+        case("cube", ("com_offset",), 1.0, seed=31, velocities=False, kind="held_out_9"),
+        case("octahedron", ("inertia_mismatch",), 2.0, seed=31, velocities=False, kind="held_out_9"),
+        case("dodecahedron", ("floor_offset",), 1.0, seed=31, kind="held_out_9"),
+        case("truncated_octahedron", ("floor_tilt",), 1.5, seed=31, velocities=False, kind="held_out_9"),
+        case("cube", ("gravity_scale",), 1.5, seed=31, kind="held_out_9"),
+        case("octahedron", ("wind", "com_offset"), 1.5, seed=31, kind="held_out_9"),
+        case("tetrahedron", ("floor_tilt", "rolling_friction"), 1.5, seed=31, kind="held_out_9"),
+        case("icosahedron", ("coriolis",), 1.0, seed=31, velocities=False, kind="held_out_9"),
+        case("dodecahedron", ("floor_centring",), 1.5, seed=31, kind="held_out_9"),
+        case("cube", ("floor_viscosity",), 2.0, seed=31, kind="held_out_9"),
+        case("truncated_octahedron", ("spin_damping",), 3.0, seed=31, kind="held_out_9"),
+    ]
+    return tuning + held + second + third + fourth + fifth + sixth + seventh + eighth + ninth
 
 
 def case_name(case: dict) -> str:

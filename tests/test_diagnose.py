@@ -138,14 +138,17 @@ def test_only_a_smoke_budget_is_called_inconclusive():
 
 
 def assert_confirmation_rule(held: dict, named: bool) -> None:
-    """Confirmed on test: the short-horizon loss the name was chosen on improves there (interval above zero), and
-    the full rollouts' position error does not get worse."""
+    """Confirmed on test: the short-horizon loss or the full rollouts' position error improves there (either 97.5%
+    interval above zero), and the full rollouts do not get worse."""
     if not named:
-        assert held["short_horizon"] is None and not held["confirmed"]
+        assert held["confirmation"] is None and not held["confirmed"]
         return
-    short = held["short_horizon"]
-    assert short["ci95"][0] <= short["improvement"] <= short["ci95"][1]
-    assert held["confirmed"] == (short["ci95"][0] > 0 and held["improvement"] >= 0)
+    confirmation = held["confirmation"]
+    short = confirmation["short_horizon"]
+    assert confirmation["confidence"] == pytest.approx(0.975)
+    assert short["ci"][0] <= short["improvement"] <= short["ci"][1]
+    either = short["ci"][0] > 0 or confirmation["full_rollouts_ci"][0] > 0
+    assert held["confirmed"] == (either and held["improvement"] >= 0)
 
 
 def test_a_concealed_weaker_gravity_is_found_in_free_flight_first_and_named_gravity_scale(tmp_path):
@@ -234,7 +237,7 @@ def test_a_candidate_is_judged_against_the_model_without_it_refitted_from_its_va
             val_losses=lambda *_: control_val,
         )
         steps.judge = lambda *args: Diagnosis.judge(steps, *args)
-        record = {"train_loss": 0.9, "negligible": False}
+        record = {"round": 1, "train_loss": 0.9, "negligible": False}
         record.update(Diagnosis.judge(steps, effect, record, candidate_val, base_val, 1.0, base_val))
         assert record["passes"]
         Diagnosis.refit_control(steps, effect, record, current, trial, trial_values, candidate_val, 1.0, base_val)
@@ -244,3 +247,29 @@ def test_a_candidate_is_judged_against_the_model_without_it_refitted_from_its_va
     assert not refit_alone["passes"] and refit_alone["refit_control"]["val_improvement"] < 0.01
     assert judged(0.98 * base_val, 0.98)["passes"]  # the refit gains a little, the effect much more
     assert "refit_control" not in judged(base_val, 1.0)  # a refit that gains nothing on train changes nothing
+
+
+@pytest.mark.parametrize("budget", ["quick", "paper"])
+def test_the_conclusive_budgets_fit_every_library_effect_in_full(budget, tmp_path):
+    # A front-runner count below the library's size lets the screen drop the hidden effect unseen (a dodecahedron's
+    # torsional friction, held out 8, when the library had grown to ten and quick still fitted nine).
+    from contactbench.diagnosis.library import library
+
+    cfg = compose_config("diagnose", [f"budget={budget}"], tmp_path)
+    assert cfg.budget.diagnose.front_runners >= len(library(0.1))
+
+
+def test_a_later_effect_must_close_the_later_margin_of_its_rounds_model():
+    from contactbench.diagnosis.library import library
+    from contactbench.diagnosis.pipeline import Decision
+
+    decision, effects = Decision(), library(0.1, gravity_scale=0.978, gravity_measured=True)
+    drag = effects["air_drag"]
+    # first round: a share of the base simulator's loss
+    assert decision.meaningful(drag, True, closes_of_base=0.06, improvement=0.06)
+    assert not decision.meaningful(drag, True, closes_of_base=0.04, improvement=0.5)
+    # later rounds: a share of the loss of the model the round starts from
+    assert decision.meaningful(drag, False, closes_of_base=0.02, improvement=0.11)
+    assert not decision.meaningful(drag, False, closes_of_base=0.2, improvement=0.08)
+    # an apparent gravity measured in free flight is meaningful by that measurement
+    assert decision.meaningful(effects["gravity_scale"], False, closes_of_base=0.0, improvement=0.0)

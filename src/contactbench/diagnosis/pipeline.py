@@ -48,22 +48,29 @@ class Budget:
 @dataclass(frozen=True)
 class Decision:
     """When an effect counts: significantly better on val than the model of its round (paired bootstrap, 95%),
-    closing at least `margin` of the BASE simulator's val loss (so a second effect must matter on the scale of the
-    original mismatch, not merely polish the first effect's model-form error), and a better BIC on train; then all of
-    it again against that model refitted from the effect's own values (Diagnosis.refit_control). An effect
-    a model-free measurement already shows beyond that measurement's own margin (an apparent gravity in free flight)
-    is practically meaningful by that measurement, and needs only the significance and the BIC.
+    practically meaningful, and a better BIC on train; then all of it again against that model refitted from the
+    effect's own values (Diagnosis.refit_control). Meaningful: in the first round, closing at least `margin` of the
+    base simulator's val loss; in a later round (and for each effect given the others), closing at least
+    `later_margin` of the val loss of the model without it, a higher bar because the first effect's model-form error
+    is a source of spurious gains of its own (blind sets 3-8: true second effects closed 10-44% of their round's
+    loss, wrong ones up to 7.8%; measured against the base loss instead, a large first effect left true second
+    effects at 2.2% and 4.1%). An effect a model-free measurement already shows beyond that measurement's own margin
+    (an apparent gravity in free flight) is practically meaningful by that measurement, and needs only the
+    significance and the BIC.
 
     The open-world correction (physics nobody listed) closes `contact_margin` instead where it acts in contact: there
     two engines disagree with nothing concealed (PyBullet nulls give MuJoCo corrections closing up to 6.0% of the val
     loss, a tetrahedron sliding on its edges), while in free flight every engine integrates the same law."""
 
     margin: float = 0.05
+    later_margin: float = 0.10
     contact_margin: float = 0.10
     confidence: float = 0.95
 
-    def meaningful(self, closes: float, effect: Effect) -> bool:
-        return closes >= self.margin or effect.measured
+    def meaningful(self, effect: Effect, first_round: bool, closes_of_base: float, improvement: float) -> bool:
+        if effect.measured:
+            return True
+        return closes_of_base >= self.margin if first_round else improvement >= self.later_margin
 
     def open_world_margin(self, phase: str) -> float:
         """What an open-world correction located in `phase` must close of the base val loss."""
@@ -336,7 +343,9 @@ class Diagnosis:
             n_residuals
         )
         closes = float((reference_val.mean() - val.mean()) / base_val.mean())
-        meaningful = self.decision.meaningful(closes, effect) and not record["negligible"]
+        meaningful = (
+            self.decision.meaningful(effect, record["round"] == 1, closes, improvement) and not record["negligible"]
+        )
         return {
             "val_improvement": improvement,
             "ci95": ci,
@@ -393,7 +402,8 @@ class Diagnosis:
         self, current: Hypothesis, values: np.ndarray, current_val: np.ndarray, base_val: np.ndarray, records: list
     ) -> tuple[Hypothesis, np.ndarray]:
         """Each effect must pass the rule given the others: refit without it, and drop it if the model with it is not
-        significantly better on val by the margin (a passenger that rode in on the first effect's model-form error)."""
+        significantly better on val by the later margin (a passenger that rode in on the first effect's model-form
+        error)."""
         for effect in current.effects:
             others = Hypothesis(current.n_bodies, tuple(e for e in current.effects if e is not effect))
             other_values, _ = self.train_fit.least_squares(
@@ -405,7 +415,8 @@ class Diagnosis:
             )
             closes = float((other_val.mean() - current_val.mean()) / base_val.mean())
             negligible = effect.negligible(current.reported(values)[effect.name])
-            kept = bool(ci[0] > 0 and self.decision.meaningful(closes, effect) and not negligible)
+            meaningful = self.decision.meaningful(effect, False, closes, improvement)
+            kept = bool(ci[0] > 0 and meaningful and not negligible)
             self.given_the_others.append(
                 {
                     "name": effect.name,
@@ -532,7 +543,12 @@ class Diagnosis:
         return self._test
 
     def heldout_segments(
-        self, base: Hypothesis, base_values: np.ndarray, final: Hypothesis, final_values: np.ndarray
+        self,
+        base: Hypothesis,
+        base_values: np.ndarray,
+        final: Hypothesis,
+        final_values: np.ndarray,
+        confidence: float,
     ) -> dict:
         """The val statistic on the test split: the final model's short-horizon loss against the base's, per test
         trajectory, paired (full rollouts from six frames are chaotic: on the real cube their interval is 2x as
@@ -542,8 +558,8 @@ class Diagnosis:
             fit.simulator.trajectory_losses(fit.robust(fit.residuals(h, v[None])[0]), split.n_trajectories)
             for h, v in ((base, base_values), (final, final_values))
         )
-        improvement, ci = bootstrap_ratio(before, after, self.budget.bootstrap, self.rng, self.decision.confidence)
-        return {"improvement": improvement, "ci95": ci}
+        improvement, ci = bootstrap_ratio(before, after, self.budget.bootstrap, self.rng, confidence)
+        return {"improvement": improvement, "ci": ci}
 
     def heldout(self, hypothesis: Hypothesis, values: np.ndarray) -> dict:
         """Test-split scores of the paper's protocol (full rollouts from the context frames)."""
@@ -596,10 +612,24 @@ def run_diagnosis(
     after = steps.heldout(final, final_values) if final.effects else before
     improvement, ci = bootstrap_ratio(before["pos_err"], after["pos_err"], budget.bootstrap, steps.rng)
     rot_improvement, rot_ci = bootstrap_ratio(before["rot_err_rad"], after["rot_err_rad"], budget.bootstrap, steps.rng)
-    short = steps.heldout_segments(base, base_values, final, final_values) if final.effects else None
-    # Confirmed: the statistic the effect was chosen on improves on the test tosses too (interval above zero), and
-    # the paper's full rollouts do not get worse (a named model that predicts test worse is no answer).
-    confirmed = bool(final.effects) and short["ci95"][0] > 0 and improvement >= 0
+    confirmation = None
+    if final.effects:
+        # On test, at either horizon: the short-horizon loss the effect was chosen on (its action shows within a
+        # segment) or the paper's full rollouts (it accumulates over a toss); each interval at 97.5%, so the pair
+        # holds at 95%. And the full rollouts do not get worse: a named model that predicts test worse is no answer.
+        each = 1 - (1 - decision.confidence) / 2
+        confirmation = {
+            "confidence": each,
+            "short_horizon": steps.heldout_segments(base, base_values, final, final_values, each),
+            "full_rollouts_ci": bootstrap_ratio(before["pos_err"], after["pos_err"], budget.bootstrap, steps.rng, each)[
+                1
+            ],
+        }
+    confirmed = (
+        confirmation is not None
+        and improvement >= 0
+        and (confirmation["short_horizon"]["ci"][0] > 0 or confirmation["full_rollouts_ci"][0] > 0)
+    )
     effects = []
     for effect in final.effects:
         chosen = next(c for c in candidates if c["name"] == effect.name and c.get("chosen"))
@@ -627,7 +657,7 @@ def run_diagnosis(
         "heldout": {
             "split": "test",
             "confirmed": confirmed,
-            "short_horizon": short,  # the val statistic on test: per-trajectory short-horizon loss, paired
+            "confirmation": confirmation,
             "n_trajectories": int(len(before["pos_err"])),
             "base": {"pos_err": float(before["pos_err"].mean()), "rot_err_rad": float(before["rot_err_rad"].mean())},
             "augmented": {"pos_err": float(after["pos_err"].mean()), "rot_err_rad": float(after["rot_err_rad"].mean())},
@@ -639,14 +669,16 @@ def run_diagnosis(
         "candidates": candidates,
         "decision_rule": {
             "margin": decision.margin,
+            "later_margin": decision.later_margin,
             "contact_margin": decision.contact_margin,
             "confidence": decision.confidence,
             "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
-            "closing >= margin of the base simulator's val loss (or, for gravity_scale, an apparent gravity measured "
-            "model-free in free flight on val), and delta BIC < 0 on train; then the same against the model of its "
-            "round refitted from the candidate's own values, where that refit gains on train (the refit control). "
-            "Confirmed on the held-out test tosses: the same short-horizon loss improves there (95% CI above zero) "
-            "and the full rollouts' position error does not get worse",
+            "closing >= margin of the base simulator's val loss in the first round and >= later_margin of its "
+            "round's model's val loss after it (or, for gravity_scale, an apparent gravity measured model-free in "
+            "free flight on val), and delta BIC < 0 on train; then the same against the model of its round refitted "
+            "from the candidate's own values, where that refit gains on train (the refit control). Confirmed on the "
+            "held-out test tosses: the short-horizon loss or the full rollouts' position error improves there "
+            "(either 97.5% interval above zero) and the full rollouts' position error does not get worse",
         },
         "budget": budget.__dict__,
         "robust_scale": steps.train_fit.scale,

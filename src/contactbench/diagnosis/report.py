@@ -96,12 +96,13 @@ def _verdict_sentence(document: dict) -> str:
 
 
 def _short_text(held: dict) -> str:
-    short = held.get("short_horizon")
-    if short is None:
+    confirmation = held.get("confirmation")
+    if confirmation is None:
         return ""
+    short, level = confirmation["short_horizon"], confirmation["confidence"]
     return (
-        f"; short-horizon loss on test {short['improvement']:.1%} lower (95% CI {short['ci95'][0]:.1%} to "
-        f"{short['ci95'][1]:.1%})"
+        f"; short-horizon loss on test {short['improvement']:.1%} lower ({level:.1%} CI {short['ci'][0]:.1%} to "
+        f"{short['ci'][1]:.1%})"
     )
 
 
@@ -184,8 +185,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "",
         f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired "
         f"bootstrap over {held['n_trajectories']} test trajectories){_short_text(held)}. Confirmed where the "
-        "short-horizon interval is above zero and the full rollouts do not get worse: "
-        f"{'yes' if held['confirmed'] else 'no'}.",
+        "short-horizon or the full-rollout improvement is above zero at 97.5% and the full rollouts do not get "
+        f"worse: {'yes' if held['confirmed'] else 'no'}.",
         "",
         "## Effects",
         "",
