@@ -618,13 +618,9 @@ def run_diagnosis(
         # segment) or the paper's full rollouts (it accumulates over a toss); each interval at 97.5%, so the pair
         # holds at 95%. And the full rollouts do not get worse: a named model that predicts test worse is no answer.
         each = 1 - (1 - decision.confidence) / 2
-        confirmation = {
-            "confidence": each,
-            "short_horizon": steps.heldout_segments(base, base_values, final, final_values, each),
-            "full_rollouts_ci": bootstrap_ratio(before["pos_err"], after["pos_err"], budget.bootstrap, steps.rng, each)[
-                1
-            ],
-        }
+        short = steps.heldout_segments(base, base_values, final, final_values, each)
+        _, full_ci = bootstrap_ratio(before["pos_err"], after["pos_err"], budget.bootstrap, steps.rng, each)
+        confirmation = {"confidence": each, "short_horizon": short, "full_rollouts_ci": full_ci}
     confirmed = (
         confirmation is not None
         and improvement >= 0

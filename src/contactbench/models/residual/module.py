@@ -15,11 +15,12 @@ states instead of recorded ones (DAgger-style) rotation improved on the real cub
 position still got worse (0.27-0.35). Every variant's rollout error rose while its regression loss fell. Also
 measured on the real cube's val split (SysID alone 0.2345 / 0.407 rad), none kept: the GNN's training noise in
 state form (2e-4 m, target moved with the noise) with the correction gated to bodies within 0.05 widths of the
-floor, 0.35-0.46 / 0.37-0.41 (scaled by 0.25: 0.249 / 0.358); stage two's window loss at lr 1e-3 instead of 1e-4,
-worse from the first epoch (0.254 -> 0.41) with the train loss rising (the linearised gradient disagrees in sign
-with central differences of the loss on 4 of 6 outputs: contact makes the rollout loss non-smooth); evolution
-strategies on whole train rollouts (806-parameter gated MLP, 16 antithetic members, 64 tosses a generation, 80
-generations) 0.243-0.25; a per-step angular damping in contact, 0.2392 / 0.3875 at its best.
+floor, 0.35-0.46 / 0.37-0.43 (scaled by 0.25: 0.249 / 0.358); stage two's window loss at lr 1e-3 instead of 1e-4,
+worse from the first epoch (0.254 -> 0.41) with the train loss rising (the linearised gradient agrees with central
+differences of the loss on the linear outputs only, and those differences change sign with the step: contact makes
+the rollout loss non-smooth); evolution strategies on whole train rollouts (806-parameter gated MLP, 16 antithetic
+members, 64 tosses a generation, 80 generations) 0.234-0.256, never clearly below MuJoCo alone; a per-step angular
+damping in contact, 0.2392 / 0.3875 at its best.
 
 Selection is on the val split's rollout position error after every epoch (`models.selection.ValRollouts`, as for
 every Lightning-trained model; checkpoint and early stopping on `val/pos_err`). The identified MuJoCo alone is
