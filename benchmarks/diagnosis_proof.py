@@ -16,7 +16,7 @@ changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py --set held_out_7      # one set (17-21 cases, 15-25 min on 2 cores)
+    python benchmarks/diagnosis_proof.py --set held_out_9      # one set (17-21 cases, 13-25 min on 2 cores)
     python benchmarks/diagnosis_proof.py --only floor_tilt      # the cases with floor_tilt
 """
 
