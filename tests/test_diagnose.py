@@ -273,3 +273,44 @@ def test_a_later_effect_must_close_the_later_margin_of_its_rounds_model():
     assert not decision.meaningful(drag, False, closes_of_base=0.2, improvement=0.08)
     # an apparent gravity measured in free flight is meaningful by that measurement
     assert decision.meaningful(effects["gravity_scale"], False, closes_of_base=0.0, improvement=0.0)
+
+
+def test_a_later_effect_below_the_later_margin_needs_its_gain_in_free_flight():
+    from contactbench.diagnosis.library import library
+    from contactbench.diagnosis.pipeline import Decision
+
+    decision, wind = Decision(), library(0.1)["wind"]
+    flying = {"improvement": 0.9, "ci95": [0.85, 0.95], "closes_of_round_loss": 0.12}
+    assert decision.meaningful(wind, False, closes_of_base=0.02, improvement=0.05, airborne=flying)
+    assert not decision.meaningful(wind, False, closes_of_base=0.02, improvement=0.05, airborne=None)
+    # not significant in free flight, or a large share of a free flight the round's model already fits
+    assert not decision.meaningful(wind, False, 0.02, 0.05, {**flying, "ci95": [-0.01, 0.95]})
+    assert not decision.meaningful(wind, False, 0.02, 0.05, {**flying, "closes_of_round_loss": 0.01})
+    # the first round's rule is the base loss's margin, free flight or not
+    assert not decision.meaningful(wind, True, closes_of_base=0.03, improvement=0.03, airborne=flying)
+
+
+def test_airborne_segments_fly_from_their_first_frame_to_their_last(tmp_path):
+    from contactbench.diagnosis.phases import FREE, clearances, label_phases
+    from contactbench.diagnosis.segments import AIRBORNE_CLEARANCE, cut_segments
+
+    path = generate_dataset(CUBE, tmp_path / "cubes", split_sizes={"train": 4}, workers=1, progress=False)
+    dataset = read_recordings(path)
+    split = dataset.split("train")
+    segments = cut_segments(dataset, split, 4)
+    labels, clear = label_phases(dataset, split), clearances(dataset, split)
+    assert 0 < segments.airborne.sum() < segments.count  # tosses fly first, then land
+    for m in range(segments.count):
+        span = slice(segments.start[m], segments.start[m] + 5)
+        window, heights = labels[segments.trajectory[m], span], clear[segments.trajectory[m], span]
+        assert segments.airborne[m] == bool((window == FREE).all() and (heights >= AIRBORNE_CLEARANCE).all())
+    flying = segments.select(segments.airborne)
+    assert flying.count == segments.airborne.sum() and flying.airborne.all()
+    assert flying.truth.shape[1:] == segments.truth.shape[1:]
+
+
+def test_only_effects_that_change_free_flight_may_lean_on_it():
+    from contactbench.diagnosis.library import library
+
+    flying = {name for name, effect in library(0.1).items() if effect.in_flight}
+    assert flying == {"air_drag", "wind", "com_offset", "inertia_mismatch", "gravity_scale"}

@@ -40,6 +40,9 @@ class Effect:
     # A model-free measurement (free flight) shows this effect beyond its own practical margin on val: the effect
     # then counts as practically meaningful without closing the simulator-loss margin (it must still be significant).
     measured: bool = False
+    # It changes how a body flies with no contact: only then is a gain on free-flight segments evidence of it (a
+    # contact effect "gains" there by refitting the other parameters alone).
+    in_flight: bool = False
 
     def negligible(self, reported: dict[str, float]) -> bool:
         """Whether the fitted values (reported units) of every parameter with a resolution lie within it of the value
@@ -78,6 +81,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             (Parameter("fluid_density", 0.0, 600.0, 0.0),),
             "quadratic air drag",
             "option density (inertia-box fluid model)",
+            in_flight=True,
         ),
         # Wind only acts through the fluid, so its fit starts with some fluid present (else it has no gradient).
         Effect(
@@ -89,6 +93,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             ),
             "a steady wind",
             "option density + wind",
+            in_flight=True,
         ),
         Effect(
             "rolling_friction",
@@ -113,6 +118,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             tuple(Parameter(f"com_offset_{axis}", -reach, reach, 0.0, resolution=LENGTH_RESOLUTION) for axis in "xyz"),
             "a centre of mass away from the mesh's centroid",
             "body inertial pos",
+            in_flight=True,
         ),
         Effect(
             "inertia_mismatch",
@@ -122,6 +128,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             ),
             "an inertia other than the uniform-density mesh's",
             "body fullinertia",
+            in_flight=True,
         ),
         Effect(
             "floor_offset",
@@ -149,6 +156,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             "or length scale off, or meta.gravity wrong",
             "option gravity x scale",
             measured=gravity_measured,
+            in_flight=True,
         ),
     ]
     assert tuple(effect.name for effect in effects) == EFFECT_NAMES

@@ -23,6 +23,20 @@ def recorded_velocities(split: Split, dt: float) -> np.ndarray:
     return split.velocities if split.velocities is not None else estimate_velocities(split.poses, dt)
 
 
+def vertex_heights(dataset: Recordings, split: Split, body: int) -> np.ndarray:
+    """Height above the recorded floor [N, T, V] of every vertex of one body, in every frame."""
+    poses = np.nan_to_num(split.poses[:, :, body])
+    return world_vertices(poses, dataset.body_mesh(body).vertices)[..., 2] - dataset.floor_z
+
+
+def clearances(dataset: Recordings, split: Split) -> np.ndarray:
+    """Height of each body's lowest vertex above the recorded floor, in body widths [N, T, K]."""
+    widths = dataset.widths()
+    return np.stack(
+        [vertex_heights(dataset, split, k).min(axis=-1) / widths[k] for k in range(dataset.n_bodies)], axis=-1
+    )
+
+
 def label_phases(dataset: Recordings, split: Split) -> np.ndarray:
     """Phase codes [N, T, K] (indices into PHASES) of every body at every frame; -1 past a trajectory's end."""
     velocities = recorded_velocities(split, dataset.dt)
@@ -31,7 +45,7 @@ def label_phases(dataset: Recordings, split: Split) -> np.ndarray:
         vertices = dataset.body_mesh(k).vertices
         width = dataset.widths()[k]
         poses = np.nan_to_num(split.poses[:, :, k])
-        heights = world_vertices(poses, vertices)[..., 2] - dataset.floor_z  # [N, T, V]
+        heights = vertex_heights(dataset, split, k)
         lowest = heights.min(axis=-1)
         touching = heights < lowest[..., None] + CONTACT_HEIGHT * width  # the vertices that carry the contact
         in_contact = lowest < CONTACT_HEIGHT * width

@@ -119,6 +119,20 @@ def _unexplained_sentence(found: dict) -> str:
     )
 
 
+def _free_flight_note(airborne: dict | None) -> str:
+    if airborne is None:
+        return ""
+    return f"; in free flight {_free_flight(airborne)}"
+
+
+def _free_flight(airborne: dict) -> str:
+    low, high = airborne["ci95"]
+    return (
+        f"{airborne['improvement']:.3f} [{low:.3f}, {high:.3f}] there, "
+        f"{airborne['closes_of_round_loss']:.3f} of the round's loss"
+    )
+
+
 def _refit_control_note(candidate: dict) -> str:
     control = candidate.get("refit_control")
     if control is None or control["passes"]:
@@ -197,25 +211,32 @@ def _markdown(document: dict, figures: list[Path]) -> str:
     ] or ["- none"]
     lines += [
         f"- `{g['name']}` given the others: improvement {g['val_improvement']:.3f} (95% CI {g['ci95'][0]:.3f} to "
-        f"{g['ci95'][1]:.3f}), {'kept' if g['passes'] else 'dropped as a passenger'}"
+        f"{g['ci95'][1]:.3f}){_free_flight_note(g.get('airborne'))}, "
+        f"{'kept' if g['passes'] else 'dropped as a passenger'}"
         for g in document.get("given_the_others", [])
     ]
     lines += [
         "",
         "## Candidates (val)",
         "",
-        "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | dBIC | "
+        "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | "
+        "in free flight (later rounds): improvement [95% CI] there, share of the round's loss removed | dBIC | "
         "passes |",
-        "|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|",
     ]
+    later_margin = document["decision_rule"]["later_margin"]
     for c in document["candidates"]:
         if c.get("val_improvement") is None:
             continue
+        airborne = c.get("airborne")
+        flying = _free_flight(airborne) if airborne else "–"
+        by_flight = c["passes"] and c["round"] > 1 and c["val_improvement"] < later_margin
         lines.append(
             f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | "
-            f"{c['closes_of_base_loss']:.3f} | "
+            f"{c['closes_of_base_loss']:.3f} | {flying} | "
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''}"
             f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''}"
+            f"{' (margin: its gain in free flight)' if by_flight and not c.get('measured_model_free') else ''}"
             f"{' (fitted below its resolution: not this physics)' if c.get('negligible') else ''}"
             f"{_special_case_note(c)}{_refit_control_note(c)} |"
         )

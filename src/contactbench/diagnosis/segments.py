@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from contactbench import rotations
-from contactbench.diagnosis.phases import IMPACT, PHASES, label_phases, recorded_velocities
+from contactbench.diagnosis.phases import FREE, IMPACT, PHASES, clearances, label_phases, recorded_velocities
 from contactbench.recordings import Recordings, Split
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts
@@ -17,6 +18,10 @@ from contactbench.sim.rollout import MujocoRollouts
 COMPONENTS = ("linear_normal", "linear_tangential", "angular_normal", "angular_tangential")
 # Every residual entry from the frame MuJoCo diverged at scores this much, and no entry more (finite: fits carry on).
 UNSTABLE_RESIDUAL = 10.0
+# Body widths the lowest vertex keeps above the recorded floor in an airborne segment: a floor fitted a few degrees
+# tilted or a centimetre higher must not reach it (a tetrahedron's rolling friction "gained" 30% in segments merely
+# labelled free next to a tilted floor).
+AIRBORNE_CLEARANCE = 0.25
 
 
 @dataclass(frozen=True)
@@ -29,12 +34,18 @@ class Segments:
     velocities0: np.ndarray  # [M, K, 6]
     truth: np.ndarray  # [M, L, K, 7] recorded frames start+1 .. start+L
     phase: np.ndarray  # [M, K] phase each body spends the segment in (an impact anywhere in it counts)
+    airborne: np.ndarray  # [M] every body flies clear of the floor from the start frame to the segment's last
     length: int
     widths: np.ndarray  # [K]
 
     @property
     def count(self) -> int:
         return len(self.start)
+
+    def select(self, keep: np.ndarray) -> Segments:
+        """The segments where `keep` [M] is true (trajectory indices unchanged)."""
+        per_segment = ("trajectory", "start", "poses0", "velocities0", "truth", "phase", "airborne")
+        return dataclasses.replace(self, **{name: getattr(self, name)[keep] for name in per_segment})
 
 
 def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: int = 1) -> Segments:
@@ -52,6 +63,11 @@ def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: in
     # The phase a body spends a segment in: impact if it has one anywhere, else its most frequent phase.
     counts = (labels[trajectory[:, None], window][..., None] == np.arange(len(PHASES))).sum(axis=1)  # [M, K, phases]
     phase = np.where(counts[..., IMPACT] > 0, IMPACT, counts.argmax(axis=-1)).astype(np.int8)
+    spans = start[:, None] + np.arange(length + 1)[None, :]  # the start frame and the window
+    clear = (labels[trajectory[:, None], spans] == FREE) & (
+        clearances(dataset, split)[trajectory[:, None], spans] >= AIRBORNE_CLEARANCE
+    )
+    airborne = clear.all(axis=(1, 2))
     return Segments(
         trajectory,
         start,
@@ -59,6 +75,7 @@ def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: in
         velocities[trajectory, start],
         truth,
         phase,
+        airborne,
         length,
         dataset.widths(),
     )
