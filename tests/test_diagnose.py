@@ -280,12 +280,12 @@ def test_a_later_effect_below_the_later_margin_needs_its_gain_in_free_flight():
     from contactbench.diagnosis.pipeline import Decision
 
     decision, wind = Decision(), library(0.1)["wind"]
-    flying = {"improvement": 0.9, "ci95": [0.85, 0.95], "closes_of_round_loss": 0.12}
+    flying = {"improvement": 0.9, "ci95": [0.85, 0.95], "removed_per_segment": 0.12}
     assert decision.meaningful(wind, False, closes_of_base=0.02, improvement=0.05, airborne=flying)
     assert not decision.meaningful(wind, False, closes_of_base=0.02, improvement=0.05, airborne=None)
     # not significant in free flight, or a large share of a free flight the round's model already fits
     assert not decision.meaningful(wind, False, 0.02, 0.05, {**flying, "ci95": [-0.01, 0.95]})
-    assert not decision.meaningful(wind, False, 0.02, 0.05, {**flying, "closes_of_round_loss": 0.01})
+    assert not decision.meaningful(wind, False, 0.02, 0.05, {**flying, "removed_per_segment": 0.01})
     # the first round's rule is the base loss's margin, free flight or not
     assert not decision.meaningful(wind, True, closes_of_base=0.03, improvement=0.03, airborne=flying)
 

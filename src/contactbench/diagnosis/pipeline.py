@@ -60,8 +60,8 @@ class Decision:
     `later_margin` of the val loss of the model without it, a higher bar because the first effect's model-form error
     is a source of spurious gains of its own (blind sets 3-9: true second effects closed 5-44% of their round's
     loss, wrong ones up to 15%; measured against the base loss instead, a large first effect left true second
-    effects at 2.2% and 4.1%), or with that much removed in free flight (`flies`: a true wind beside a centre-of-mass
-    offset closed 9.6% of the loss, and 99.9% of it in free flight). An effect a model-free
+    effects at 2.2% and 4.1%), or with that much removed per free-flight segment (`flies`: a true wind beside a
+    centre-of-mass offset closed 9.6% of the loss, 99.9% of the free-flight loss). An effect a model-free
     measurement already shows beyond that measurement's own margin (an apparent gravity in free flight) is practically
     meaningful by that measurement, and needs only the significance and the BIC.
 
@@ -85,13 +85,11 @@ class Decision:
 
     def flies(self, airborne: dict | None) -> bool:
         """Free-flight evidence for a later effect (Diagnosis.airborne_gain): significant on the val segments in which
-        every body flies, and what it removes there is at least `later_margin` of its round's model's loss per segment
-        over all phases. In free flight every engine integrates the same law, so no contact model-form error is left
-        there for a passenger to ride on; measured against the whole loss, because relative to a free flight that the
-        round's model already fits, refitting its parameters "gains" up to 97%."""
-        return (
-            airborne is not None and airborne["ci95"][0] > 0 and airborne["closes_of_round_loss"] >= self.later_margin
-        )
+        every body flies, and what it removes there per segment is at least `later_margin` of its round's model's mean
+        loss per segment over all phases. In free flight every engine integrates the same law, so no contact
+        model-form error is left there for a passenger to ride on; measured against the whole loss, because relative
+        to a free flight that the round's model already fits, refitting its parameters "gains" up to 97%."""
+        return airborne is not None and airborne["ci95"][0] > 0 and airborne["removed_per_segment"] >= self.later_margin
 
     def open_world_margin(self, phase: str) -> float:
         """What an open-world correction located in `phase` must close of the base val loss."""
@@ -623,7 +621,7 @@ class Diagnosis:
         if not np.isfinite([improvement, *ci]).all():  # resamples of tosses that all fly exactly
             return None
         share = float(before[present].mean() / reference_val.mean())
-        return {"improvement": improvement, "ci95": ci, "closes_of_round_loss": improvement * share}
+        return {"improvement": improvement, "ci95": ci, "removed_per_segment": improvement * share}
 
     @staticmethod
     def _paired_losses(

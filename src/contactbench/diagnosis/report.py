@@ -129,7 +129,7 @@ def _free_flight(airborne: dict) -> str:
     low, high = airborne["ci95"]
     return (
         f"{airborne['improvement']:.3f} [{low:.3f}, {high:.3f}] there, "
-        f"{airborne['closes_of_round_loss']:.3f} of the round's loss"
+        f"removing {airborne['removed_per_segment']:.3f} of the round's mean loss per segment"
     )
 
 
@@ -174,7 +174,7 @@ def _open_world_lines(found: dict | None) -> list[str]:
 
 
 def _markdown(document: dict, figures: list[Path]) -> str:
-    held = document["heldout"]
+    held, rule = document["heldout"], document["decision_rule"]
     lines = [
         "# Diagnosis",
         "",
@@ -183,7 +183,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         budget_sentence(document),
         "",
         f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: "
-        f"{document['decision_rule']['rule']} (margin {document['decision_rule']['margin']:.0%}).",
+        f"{rule['rule']}. Margins: {rule['margin']:.0%} (first round), {rule['later_margin']:.0%} (later rounds), "
+        f"{rule['contact_margin']:.0%} (an open-world correction in contact).",
         "",
         "## First, model-free: free flight",
         "",
@@ -220,7 +221,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "## Candidates (val)",
         "",
         "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | "
-        "in free flight (later rounds): improvement [95% CI] there, share of the round's loss removed | dBIC | "
+        "in free flight (later rounds) | dBIC | "
         "passes |",
         "|---|---|---|---|---|---|---|---|",
     ]
