@@ -11,12 +11,12 @@ as `python diagnose.py` (quick budget unless --budget), and only then scored aga
 
 The "tuning" cases are the ones the method was developed on; the "held_out" cases (other seeds, strengths and
 shapes, no recorded velocities, two effects at once) were run to report, and then looked into; each later set
-("held_out_2" ... "held_out_10": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
+("held_out_2" ... "held_out_11": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
 changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py --set held_out_10     # one set (17-21 cases, 13-25 min on 2 cores)
+    python benchmarks/diagnosis_proof.py --set held_out_11     # one set (17-21 cases, 13-25 min on 2 cores)
     python benchmarks/diagnosis_proof.py --only floor_tilt      # the cases with floor_tilt
 """
 
@@ -59,6 +59,7 @@ SETS = (
     "held_out_8",
     "held_out_9",
     "held_out_10",
+    "held_out_11",
 )
 # Where each outside-library effect acts: an `unexplained` verdict must locate the mismatch in one of these phases.
 ACTS_IN = {
@@ -320,7 +321,33 @@ def cases() -> list[dict]:
         case("rhombicuboctahedron", ("floor_viscosity",), 2.0, seed=37, kind="held_out_10"),
         case("cube", ("spin_damping",), 3.0, seed=37, kind="held_out_10"),
     ]
-    return tuning + held + second + third + fourth + fifth + sixth + seventh + eighth + ninth + tenth
+    # Written after held_out_10 had been seen (a tetrahedron's drag beside a floor offset went unjudged in free flight:
+    # 15 of 165 val tosses fly clear for a 16-frame segment; the free-flight evidence now uses half-length segments),
+    # run once: seed 41, five nulls, every library effect, two pairs, every outside effect.
+    eleventh = [
+        case("octahedron", seed=41, kind="held_out_11"),
+        case("icosahedron", seed=41, velocities=False, kind="held_out_11"),
+        case("tetrahedron", seed=41, kind="held_out_11"),
+        case("cube", seed=41, velocities=False, kind="held_out_11"),
+        case("truncated_octahedron", seed=41, kind="held_out_11"),
+        case("tetrahedron", ("air_drag",), 1.5, seed=41, velocities=False, kind="held_out_11"),
+        case("icosahedron", ("wind",), 1.5, seed=41, kind="held_out_11"),
+        case("octahedron", ("torsional_friction",), 2.0, seed=41, kind="held_out_11"),
+        case("icosahedron", ("rolling_friction",), 2.0, seed=41, kind="held_out_11"),
+        case("octahedron", ("anisotropic_friction",), 2.0, seed=41, velocities=False, kind="held_out_11"),
+        case("cube", ("com_offset",), 1.5, seed=41, kind="held_out_11"),
+        case("truncated_octahedron", ("inertia_mismatch",), 2.0, seed=41, kind="held_out_11"),
+        case("icosahedron", ("floor_offset",), 1.0, seed=41, velocities=False, kind="held_out_11"),
+        case("octahedron", ("floor_tilt",), 1.5, seed=41, kind="held_out_11"),
+        case("cube", ("gravity_scale",), 2.0, seed=41, kind="held_out_11"),
+        case("octahedron", ("air_drag", "floor_tilt"), 1.5, seed=41, kind="held_out_11"),
+        case("tetrahedron", ("com_offset", "floor_offset"), 1.5, seed=41, kind="held_out_11"),
+        case("icosahedron", ("coriolis",), 1.0, seed=41, kind="held_out_11"),
+        case("cube", ("floor_centring",), 1.5, seed=41, kind="held_out_11"),
+        case("octahedron", ("floor_viscosity",), 2.0, seed=41, velocities=False, kind="held_out_11"),
+        case("tetrahedron", ("spin_damping",), 3.0, seed=41, kind="held_out_11"),
+    ]
+    return tuning + held + second + third + fourth + fifth + sixth + seventh + eighth + ninth + tenth + eleventh
 
 
 def case_name(case: dict) -> str:

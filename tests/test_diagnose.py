@@ -304,9 +304,6 @@ def test_airborne_segments_fly_from_their_first_frame_to_their_last(tmp_path):
         span = slice(segments.start[m], segments.start[m] + 5)
         window, heights = labels[segments.trajectory[m], span], clear[segments.trajectory[m], span]
         assert segments.airborne[m] == bool((window == FREE).all() and (heights >= AIRBORNE_CLEARANCE).all())
-    flying = segments.select(segments.airborne)
-    assert flying.count == segments.airborne.sum() and flying.airborne.all()
-    assert flying.truth.shape[1:] == segments.truth.shape[1:]
 
 
 def test_only_effects_that_change_free_flight_may_lean_on_it():

@@ -158,7 +158,7 @@ class Diagnosis:
         self.confounded: list[str] = []  # effects the first naming round could not tell apart
         self.given_the_others: list[dict] = []  # each named effect judged against the model without it
         self._test: tuple[Split, ResidualFit] | None = None  # test segments, cut when first needed
-        self._airborne: ResidualFit | None = None  # val segments in free flight, once the robust scale is known
+        self._halves: ResidualFit | None = None  # half-length val segments (free-flight evidence), cut when needed
 
     # ---------------------------------------------------------------- steps
 
@@ -288,7 +288,7 @@ class Diagnosis:
                 }
                 record["negligible"] = effect.negligible(record["parameters"])
                 if round_ > 0 and effect.in_flight:
-                    record["airborne"] = self.airborne_gain(current, values, current_val, trial, trial_values)
+                    record["airborne"] = self.airborne_gain(current, values, trial, trial_values)
                 record.update(self.judge(effect, record, val, current_val, current_train, base_val))
                 if record["passes"]:
                     self.refit_control(effect, record, current, trial, trial_values, val, current_train, base_val)
@@ -401,7 +401,7 @@ class Diagnosis:
         control_val = self.val_losses(current, control_values)
         against_record = dict(record)
         if "airborne" in record:
-            against_record["airborne"] = self.airborne_gain(current, control_values, control_val, trial, trial_values)
+            against_record["airborne"] = self.airborne_gain(current, control_values, trial, trial_values)
         against = self.judge(effect, against_record, val, control_val, control_train, base_val)
         if "airborne" in against_record:
             against["airborne"] = against_record["airborne"]
@@ -444,9 +444,7 @@ class Diagnosis:
             )
             closes = float((other_val.mean() - current_val.mean()) / base_val.mean())
             negligible = effect.negligible(current.reported(values)[effect.name])
-            airborne = (
-                self.airborne_gain(others, other_values, other_val, current, values) if effect.in_flight else None
-            )
+            airborne = self.airborne_gain(others, other_values, current, values) if effect.in_flight else None
             meaningful = self.decision.meaningful(effect, False, closes, improvement, airborne)
             kept = bool(ci[0] > 0 and meaningful and not negligible)
             self.given_the_others.append(
@@ -592,35 +590,37 @@ class Diagnosis:
         return {"improvement": improvement, "ci": ci}
 
     def airborne_gain(
-        self,
-        reference: Hypothesis,
-        reference_values: np.ndarray,
-        reference_val: np.ndarray,
-        hypothesis: Hypothesis,
-        values: np.ndarray,
+        self, reference: Hypothesis, reference_values: np.ndarray, hypothesis: Hypothesis, values: np.ndarray
     ) -> dict | None:
-        """Val improvement of `hypothesis` over `reference` on the segments in which every body flies the whole
-        segment, paired over the trajectories that have such segments, and what it removes there as a share of the
-        reference's loss over all val segments (`reference_val`, per trajectory) (Decision.flies); None where no
-        segment flies or the reference flies as recorded."""
-        if self._airborne is None:
-            segments = self.val_fit.simulator.segments
-            flying = SegmentSimulator(self.dataset, segments.select(segments.airborne))
-            self._airborne = ResidualFit(flying, scale=self.val_fit.scale)
-        n_trajectories = self.val_split.n_trajectories
-        if self._airborne.simulator.segments.count == 0:
+        """Val improvement of `hypothesis` over `reference` on the half-length val segments in which every body flies
+        the whole segment, paired over the trajectories that have such segments, and what it removes there per segment
+        as a share of the reference's mean loss per half-length segment over all phases (Decision.flies); None where
+        too few tosses fly or the reference flies as recorded."""
+        if self._halves is None:
+            # Half-length segments: few tosses fly clear of the floor for a whole 16-frame segment (a tetrahedron's:
+            # 15 of 165 val tosses; at 8 frames 163).
+            segments = cut_segments(self.dataset, self.val_split, max(self.budget.segment_frames // 2, 1))
+            self._halves = ResidualFit(SegmentSimulator(self.dataset, segments), scale=self.val_fit.scale)
+        fit, n_trajectories = self._halves, self.val_split.n_trajectories
+        segments = fit.simulator.segments
+        flying = segments.trajectory[segments.airborne]
+        present = np.bincount(flying, minlength=n_trajectories) > 0
+        if present.sum() < MIN_FLYING_TRAJECTORIES:
             return None
-        fit = self._airborne
-        before, after = self._paired_losses(fit, n_trajectories, reference, reference_values, hypothesis, values)
-        present = np.bincount(fit.simulator.segments.trajectory, minlength=n_trajectories) > 0
-        if present.sum() < MIN_FLYING_TRAJECTORIES or not before[present].mean() > EXACT_FLIGHT_LOSS:
-            return None  # too few tosses to resample, or the reference flies as recorded: nothing to gain there
-        improvement, ci = bootstrap_ratio(
-            before[present], after[present], self.budget.bootstrap, self.rng, self.decision.confidence
+        before, after = (
+            fit.robust(fit.residuals(h, v[None])[0]).sum(axis=-1).mean(axis=(-1, -2))  # per segment [M]
+            for h, v in ((reference, reference_values), (hypothesis, values))
         )
+        if not before[segments.airborne].mean() > EXACT_FLIGHT_LOSS:
+            return None  # the reference flies as recorded: nothing to gain there
+        per_trajectory = [
+            np.bincount(flying, weights=loss[segments.airborne], minlength=n_trajectories)[present]
+            for loss in (before, after)
+        ]
+        improvement, ci = bootstrap_ratio(*per_trajectory, self.budget.bootstrap, self.rng, self.decision.confidence)
         if not np.isfinite([improvement, *ci]).all():  # resamples of tosses that all fly exactly
             return None
-        share = float(before[present].mean() / reference_val.mean())
+        share = float(before[segments.airborne].mean() / before.mean())
         return {"improvement": improvement, "ci95": ci, "removed_per_segment": improvement * share}
 
     @staticmethod

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,11 +40,6 @@ class Segments:
     @property
     def count(self) -> int:
         return len(self.start)
-
-    def select(self, keep: np.ndarray) -> Segments:
-        """The segments where `keep` [M] is true (trajectory indices unchanged)."""
-        per_segment = ("trajectory", "start", "poses0", "velocities0", "truth", "phase", "airborne")
-        return dataclasses.replace(self, **{name: getattr(self, name)[keep] for name in per_segment})
 
 
 def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: int = 1) -> Segments:
