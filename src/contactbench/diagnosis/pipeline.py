@@ -61,7 +61,7 @@ class Decision:
     is a source of spurious gains of its own (blind sets 3-9: true second effects closed 5-44% of their round's
     loss, wrong ones up to 15%; measured against the base loss instead, a large first effect left true second
     effects at 2.2% and 4.1%), or with that much removed per free-flight segment (`flies`: a true wind beside a
-    centre-of-mass offset closed 9.6% of the loss, 99.9% of the free-flight loss). An effect a model-free
+    floor tilt closed 5.2% of the loss and 76% of the free-flight loss). An effect a model-free
     measurement already shows beyond that measurement's own margin (an apparent gravity in free flight) is practically
     meaningful by that measurement, and needs only the significance and the BIC.
 
