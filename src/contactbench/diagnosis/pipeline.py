@@ -585,7 +585,10 @@ class Diagnosis:
         trajectory, paired (full rollouts from six frames are chaotic: on the real cube their interval is 2x as
         wide)."""
         split, fit = self.test_segments()
-        before, after = self._paired_losses(fit, split.n_trajectories, base, base_values, final, final_values)
+        before, after = (
+            fit.simulator.trajectory_losses(fit.robust(fit.residuals(h, v[None])[0]), split.n_trajectories)
+            for h, v in ((base, base_values), (final, final_values))
+        )
         improvement, ci = bootstrap_ratio(before, after, self.budget.bootstrap, self.rng, confidence)
         return {"improvement": improvement, "ci": ci}
 
@@ -622,22 +625,6 @@ class Diagnosis:
             return None
         share = float(before[segments.airborne].mean() / before.mean())
         return {"improvement": improvement, "ci95": ci, "removed_per_segment": improvement * share}
-
-    @staticmethod
-    def _paired_losses(
-        fit: ResidualFit,
-        n_trajectories: int,
-        reference: Hypothesis,
-        reference_values: np.ndarray,
-        hypothesis: Hypothesis,
-        values: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Per-trajectory short-horizon losses [N] on `fit`'s segments of the reference and of the hypothesis."""
-        before, after = (
-            fit.simulator.trajectory_losses(fit.robust(fit.residuals(h, v[None])[0]), n_trajectories)
-            for h, v in ((reference, reference_values), (hypothesis, values))
-        )
-        return before, after
 
     def heldout(self, hypothesis: Hypothesis, values: np.ndarray) -> dict:
         """Test-split scores of the paper's protocol (full rollouts from the context frames)."""
