@@ -225,13 +225,12 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "passes |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    later_margin = document["decision_rule"]["later_margin"]
     for c in document["candidates"]:
         if c.get("val_improvement") is None:
             continue
         airborne = c.get("airborne")
         flying = _free_flight(airborne) if airborne else "–"
-        by_flight = c["passes"] and c["round"] > 1 and c["val_improvement"] < later_margin
+        by_flight = c["passes"] and c["round"] > 1 and c["val_improvement"] < rule["later_margin"]
         lines.append(
             f"| {c['round']} | {c['name']} | {c['val_improvement']:.3f} | [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}] | "
             f"{c['closes_of_base_loss']:.3f} | {flying} | "
