@@ -1,4 +1,4 @@
-"""diagnosis.free_flight: the model-free check that bodies in free flight fall at meta.gravity."""
+"""diagnosis.free_flight: the model-free checks of free flight (the fall against meta.gravity, a drag)."""
 
 from __future__ import annotations
 
@@ -34,6 +34,24 @@ def test_a_concealed_weaker_gravity_is_measured_in_free_flight_and_a_null_datase
     plain = free_flight.check(null.for_models(list(null.splits)), rng, draws=200)
     assert plain["scale"] == pytest.approx(1.0, abs=2e-3) and not plain["differs"] and not plain["confirmed"]
     assert "consistent with meta" in plain["sentence"]
+
+
+def test_a_concealed_air_drag_is_measured_in_free_flight_and_the_fall_net_of_it_stays_at_gravity(tmp_path):
+    rng = np.random.default_rng(0)
+    dragged = read_recordings(
+        generate_dataset(CUBE, tmp_path / "drag", split_sizes=SIZES, workers=1, progress=False, effects=("air_drag",))
+    )
+    found = free_flight.check(dragged.for_models(list(dragged.splits)), rng, draws=200)
+    assert found["drag_measured"] and found["drag_confirmed"] and not found["apparent_gravity"]
+    for part in found["splits"].values():
+        # A body slows against its motion (k > 0), and the fall net of the drag is still meta.gravity's.
+        assert part["drag_ci95"][0] > 0 and part["drag_deceleration_m_s2"] > 0.3
+        assert part["scale"] == pytest.approx(1.0, abs=0.01)
+    assert "a drag (still or moving air)" in found["sentence"]
+    null = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False))
+    plain = free_flight.check(null.for_models(list(null.splits)), rng, draws=200)
+    assert not plain["drag_measured"] and abs(plain["splits"]["val"]["drag_deceleration_m_s2"]) < 1e-6
+    assert "no drag beyond" in plain["sentence"]
 
 
 def test_free_frames_leave_out_contact_and_the_ends(tmp_path):

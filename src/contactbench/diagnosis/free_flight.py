@@ -6,7 +6,8 @@ vertical acceleration other than meta.gravity means the recordings' time base or
 interval of sqrt(a / g) dt, or positions scaled by a / g), or meta.gravity itself is wrong; MuJoCo can express all
 three as a scaled gravity (library effect `gravity_scale`). Fit on train, decide on val, confirm on test. Only an
 acceleration that is the same for every frame is an apparent gravity: one that grows with speed (air drag, wind) or
-points across gravity is a force, and the diagnosis must find it elsewhere.
+points across gravity is a force. The second measurement is that force's drag-like part: a deceleration k |v| v
+against the motion (quadratic drag; wind is drag in moving air), which the library models as `air_drag` / `wind`.
 """
 
 from __future__ import annotations
@@ -24,6 +25,11 @@ SPLITS = ("train", "val", "test")
 CLEARANCE = 0.2
 # The deviation must be at least this fraction of |meta.gravity| to count (the decision rule's practical margin).
 MARGIN = 0.005
+# A frame whose centre of mass falls at less than this fraction of |g| is held up by something (a floor higher or
+# tilted against the recorded one, a neighbour), not flying: drag that strong would mean a terminal speed of a few
+# m/s. (Synthetic tosses with twice the library's reference drag fall at >= 0.75 g; a floor tilted by 0.04 rad left
+# 900 of 3800 "free" val frames of a truncated octahedron below 0.5 g; the real cube 1 of 1802.)
+SUPPORTED = 0.5
 
 
 def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
@@ -46,7 +52,9 @@ def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
     clear &= np.isfinite(split.poses).all(axis=-1)
     free = np.zeros_like(clear)
     free[:, 1:-1] = clear[:, :-2] & clear[:, 1:-1] & clear[:, 2:]
-    return free
+    gravity = np.asarray(dataset.gravity, dtype=float)
+    falling = centre_motion(dataset, split)[1] @ gravity / float(gravity @ gravity)  # [N, T, K] in units of g
+    return free & (falling >= SUPPORTED)
 
 
 def centre_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
@@ -65,61 +73,59 @@ def centre_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.nda
     return velocity, acceleration
 
 
-def centre_accelerations(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
-    """Per trajectory: the summed free-flight accelerations of the centres of mass [N, 3] (m/s^2) and their count
-    [N]."""
-    free = free_frames(dataset, split)
-    sums = np.einsum("ntk,ntki->ni", free.astype(float), centre_motion(dataset, split)[1])
-    return sums, free.sum(axis=(1, 2))
-
-
-def gravity_like(dataset: Recordings, split: Split) -> dict:
-    """Whether the free-flight acceleration is a gravity (the same for every frame) rather than a force that depends
-    on the motion: the part along gravity that grows as drag does, k |v| (v . down) fitted by least squares, at the
-    median such value, and the mean part across gravity, each against MARGIN of |meta.gravity|. A wrong time base or
-    length scale scales the whole acceleration; air drag, wind, or frames resting on a tilted floor do not."""
-    free = free_frames(dataset, split)
-    velocity, acceleration = (part[free] for part in centre_motion(dataset, split))  # [F, 3]
-    gravity = np.asarray(dataset.gravity, dtype=float)
-    g = float(np.linalg.norm(gravity))
-    down = gravity / g
-    along = acceleration @ down
-    drag_like = -np.linalg.norm(velocity, axis=-1) * (velocity @ down)
-    design = np.stack([np.ones_like(drag_like), drag_like], axis=1)
-    (_, slope), *_ = np.linalg.lstsq(design, along, rcond=None)
-    speed_term = float(abs(slope) * np.median(np.abs(drag_like)))
-    across = float(np.linalg.norm(acceleration.mean(axis=0) - (acceleration.mean(axis=0) @ down) * down))
-    return {
-        "speed_dependent_m_s2": speed_term,
-        "across_gravity_m_s2": across,
-        "gravity_like": bool(speed_term < MARGIN * g and across < MARGIN * g),
-    }
-
-
 def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: int, confidence: float = 0.95) -> dict:
-    """Mean free-flight acceleration of one split, its standard error and a percentile interval (resampling
-    trajectories, so that frames of one toss count together)."""
-    sums, counts = centre_accelerations(dataset, split)
-    used = counts > 0
-    sums, counts = sums[used], counts[used]
-    if not len(counts):
-        return {"n_trajectories": 0, "n_frames": 0}
-    mean = sums.sum(axis=0) / counts.sum()
-    picks = rng.integers(0, len(counts), size=(draws, len(counts)))
-    samples = sums[picks].sum(axis=1) / np.maximum(counts[picks].sum(axis=1), 1)[:, None]  # [draws, 3]
+    """One split's free-flight accelerations as a constant plus a drag, a = c - k |v| v, fitted by least squares over
+    every free-flight frame, with standard errors and percentile intervals from resampling trajectories (the frames of
+    one toss count together). c is the fall net of the drag: drag shifts a plain mean (twice the library's reference
+    drag made a cube fall at 0.94 g on average), c stays at g. And k times the median squared speed, the deceleration
+    the drag causes at a typical speed."""
+    free = free_frames(dataset, split)
+    velocity, acceleration = centre_motion(dataset, split)
+    used = np.flatnonzero(free.any(axis=(1, 2)))
+    if len(used) < 2:
+        return {"n_trajectories": int(len(used)), "n_frames": int(free.sum())}
+    # Per trajectory, the normal equations of the fit (so that a resample only sums them): unknowns c_x, c_y, c_z, k.
+    normal, moment = np.zeros((len(used), 4, 4)), np.zeros((len(used), 4))
+    for row, n in enumerate(used):
+        v, a = velocity[n][free[n]], acceleration[n][free[n]]  # [F, 3]
+        design = np.zeros((len(v), 3, 4))
+        design[:, :, :3] = np.eye(3)
+        design[:, :, 3] = -np.linalg.norm(v, axis=-1, keepdims=True) * v
+        design = design.reshape(-1, 4)
+        normal[row], moment[row] = design.T @ design, design.T @ a.reshape(-1)
+
+    def fit(rows: np.ndarray) -> np.ndarray:
+        return np.linalg.lstsq(normal[rows].sum(axis=0), moment[rows].sum(axis=0), rcond=None)[0]
+
+    point = fit(np.arange(len(used)))
+    samples = np.array([fit(rows) for rows in rng.integers(0, len(used), size=(draws, len(used)))])  # [draws, 4]
     tail = (1.0 - confidence) / 2 * 100
+    ci = np.percentile(samples, [tail, 100 - tail], axis=0).T  # [4, 2]
+    speed_squared = float(np.median(np.sum(velocity[free] ** 2, axis=-1)))
     return {
-        "n_trajectories": int(len(counts)),
-        "n_frames": int(counts.sum()),
-        "acceleration": mean.tolist(),
-        "sem": samples.std(axis=0).tolist(),
-        "ci95": np.percentile(samples, [tail, 100 - tail], axis=0).T.tolist(),  # [axis] -> [low, high]
+        "n_trajectories": int(len(used)),
+        "n_frames": int(free.sum()),
+        "acceleration": point[:3].tolist(),
+        "sem": samples[:, :3].std(axis=0).tolist(),
+        "ci95": ci[:3].tolist(),  # [axis] -> [low, high]
+        "drag_per_m": float(point[3]),
+        "drag_ci95": ci[3].tolist(),
+        "median_speed_m_s": speed_squared**0.5,
+        "drag_deceleration_m_s2": float(point[3]) * speed_squared,
     }
 
 
 def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, confidence: float = 0.95) -> dict:
-    """The free-flight finding: accelerations per split; the scale a/g along meta.gravity fitted on train; whether
-    val says it differs from 1 (interval excludes it, by at least MARGIN); whether test confirms the same side."""
+    """The free-flight findings (`measure` per split). The fall: the scale a/g along meta.gravity fitted on train;
+    whether val says it differs from 1 (interval excludes it, by at least MARGIN); whether test confirms the same
+    side. An apparent gravity where it differs and, on val, the fall has no part across gravity beyond MARGIN (a
+    steady push sideways is a force: wind, or bodies counted as flying rest on a tilted floor), nothing pushes
+    bodies along their motion (drag's interval below zero, by MARGIN: in free flight nothing can, so some "free"
+    frames touch a floor sloping away; a truncated octahedron on a floor tilted by 0.04 rad fell at 0.99 g), and it
+    differs by more than the drag decelerates at a typical speed (what an error in the drag's form may shift: twice
+    the reference drag moved a cube's fall by 0.4%). The drag: measured where on val its interval lies above zero
+    and it decelerates by at least MARGIN of |meta.gravity| at a typical speed, confirmed where test's interval lies
+    above zero too."""
     gravity = np.asarray(dataset.gravity, dtype=float)
     g = float(np.linalg.norm(gravity))
     down = gravity / g
@@ -128,19 +134,21 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
     }
     out: dict = {"meta_gravity": gravity.tolist(), "clearance_of_width": CLEARANCE, "margin": MARGIN, "splits": splits}
     for part in splits.values():
-        if part["n_frames"]:
+        if "acceleration" in part:
             part["along_gravity"] = float(np.dot(part["acceleration"], down))
             # along meta.gravity: the interval of the projection (gravity lies along an axis in practice)
             axis = int(np.argmax(np.abs(down)))
             part["along_gravity_ci95"] = sorted(float(np.sign(down[axis]) * c) for c in part["ci95"][axis])
             part["along_gravity_sem"] = float(part["sem"][axis])
+            part["across_gravity_m_s2"] = float(np.linalg.norm(np.cross(part["acceleration"], down)))
             part["scale"] = part["along_gravity"] / g
     train, val, test = (splits.get(name, {}) for name in SPLITS)
-    if not all(part.get("n_frames") for part in (train, val, test)):
+    if not all("acceleration" in part for part in (train, val, test)):
         out.update(
             scale=None,
             differs=False,
             confirmed=False,
+            drag_measured=False,
             sentence="Too few free-flight frames in some split to measure the free-fall acceleration.",
         )
         return out
@@ -149,43 +157,72 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
     differs = bool((low > 1 or high < 1) and abs(val["scale"] - 1) >= MARGIN)
     test_low, test_high = (c / g for c in test["along_gravity_ci95"])
     confirmed = bool(differs and ((test_low > 1) if low > 1 else (test_high < 1)))
-    shape = gravity_like(dataset, dataset.split("val"))
+    drag_measured = bool(val["drag_ci95"][0] > 0 and val["drag_deceleration_m_s2"] >= MARGIN * g)
+    pushed = bool(val["drag_ci95"][1] < 0 and -val["drag_deceleration_m_s2"] >= MARGIN * g)
+    gravity_like = bool(
+        val["across_gravity_m_s2"] < MARGIN * g
+        and not pushed
+        and abs(val["scale"] - 1) * g > abs(val["drag_deceleration_m_s2"])
+    )
     out.update(
-        **shape,
-        # what the gravity_scale effect may lean on: a differing acceleration that is a gravity, not a drag
-        apparent_gravity=bool(differs and shape["gravity_like"]),
+        apparent_gravity=differs and gravity_like,  # what the gravity_scale effect may lean on
         scale=scale,
         frame_interval_factor=float(np.sqrt(scale)),  # the true frame interval / meta.dt, if the time base is off
         frame_rate=float(1.0 / (np.sqrt(scale) * dataset.dt)),
         length_scale=scale,  # recorded / true lengths, if the length scale is off
         differs=differs,
         confirmed=confirmed,
+        drag_measured=drag_measured,
+        drag_confirmed=bool(drag_measured and test["drag_ci95"][0] > 0),
     )
     out["sentence"] = sentence(out)
     return out
 
 
 def sentence(found: dict) -> str:
-    """One line for the report: X +- SEM vs meta per split, and what it means."""
+    """The report's lines: the fall (net of the drag, mean ± SE per split vs meta, and what it means), then the drag."""
+    return f"{fall_sentence(found)} {drag_sentence(found)}"
+
+
+def fall_sentence(found: dict) -> str:
     g = float(np.linalg.norm(found["meta_gravity"]))
     parts = ", ".join(
         f"{name} {part['along_gravity']:.3f} ± {part['along_gravity_sem']:.3f}"
         for name, part in found["splits"].items()
     )
-    head = f"Free-flight acceleration along gravity (m/s², mean ± SE): {parts}; meta.gravity {g:.3f}"
+    head = f"Free-flight acceleration along gravity, net of drag (m/s², mean ± SE): {parts}; meta.gravity {g:.3f}"
     if not found["differs"]:
         return head + ": consistent with meta (val)."
     verdict = "confirmed on test" if found["confirmed"] else "NOT confirmed on test"
-    if not found["gravity_like"]:
+    val = found["splits"]["val"]
+    across, drag = val["across_gravity_m_s2"], val["drag_deceleration_m_s2"]
+    if not found["apparent_gravity"]:
         return (
             f"{head}: {found['scale']:.4f} × meta (train), differs on val, {verdict}; but not a gravity: on val it "
-            f"varies with the motion ({found['speed_dependent_m_s2']:.3f} m/s² as drag would grow) or points across "
-            f"gravity ({found['across_gravity_m_s2']:.3f} m/s²), so a force acts in free flight (drag, wind) or "
-            f"bodies counted as flying rest on something."
+            f"points across gravity ({across:.3f} m/s²), or bodies are pushed along their motion (drag "
+            f"{drag:.3f} m/s², below), or it differs by less than drag decelerates, so a force acts in free flight "
+            f"(drag, wind) or bodies counted as flying touch something."
         )
     return (
-        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}, the same for every "
-        f"frame (as drag would grow: {found['speed_dependent_m_s2']:.3f} m/s²). Either the true frame interval is "
+        f"{head}: apparent gravity {found['scale']:.4f} × meta (train), differs on val, {verdict}, with nothing "
+        f"across gravity ({across:.3f} m/s²). Either the true frame interval is "
         f"{found['frame_interval_factor']:.4f} × meta.dt ({found['frame_rate']:.1f} Hz), or lengths are recorded at "
-        f"{found['length_scale']:.4f} × true, or meta.gravity is wrong."
+        f"{found['length_scale']:.4f} × true, or "
+        f"meta.gravity is wrong."
     )
+
+
+def drag_sentence(found: dict) -> str:
+    parts = ", ".join(
+        f"{name} {part['drag_per_m']:.3f} [{part['drag_ci95'][0]:.3f}, {part['drag_ci95'][1]:.3f}]"
+        for name, part in found["splits"].items()
+    )
+    val = found["splits"]["val"]
+    head = (
+        f"Drag in free flight, a = c - k|v|v (k in 1/m, 95% CI): {parts}; on val it decelerates by "
+        f"{val['drag_deceleration_m_s2']:.3f} m/s² at the median speed {val['median_speed_m_s']:.2f} m/s"
+    )
+    if not found["drag_measured"]:
+        return f"{head}: no drag beyond {MARGIN:.1%} of meta.gravity (val)."
+    verdict = "confirmed on test" if found["drag_confirmed"] else "NOT confirmed on test"
+    return f"{head}: a drag (still or moving air) beyond {MARGIN:.1%} of meta.gravity, {verdict}."

@@ -69,10 +69,14 @@ GRAVITY_RESOLUTION = MARGIN
 GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
 
 
-def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = False) -> dict[str, Effect]:
+def library(
+    width: float, gravity_scale: float = 1.0, gravity_measured: bool = False, drag_measured: bool = False
+) -> dict[str, Effect]:
     """The candidate effects for bodies of the given width (m); their names are generation.effects.EFFECT_NAMES.
     `gravity_scale`: where the gravity_scale fit starts, the train split's free-flight measurement (1: off);
-    `gravity_measured`: the free-flight check found an apparent gravity on val (diagnosis.free_flight)."""
+    `gravity_measured` / `drag_measured`: the free-flight check found an apparent gravity / a drag on val
+    (diagnosis.free_flight). A drag measured there is air_drag's or wind's (drag in moving air): both then count as
+    measured, and wind must still beat air_drag (Diagnosis.require_more_than_special_cases)."""
     reach = 0.3 * width
     gravity_start = float(np.clip(gravity_scale, *GRAVITY_SCALE_BOUNDS))
     effects = [
@@ -81,6 +85,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             (Parameter("fluid_density", 0.0, 600.0, 0.0),),
             "quadratic air drag",
             "option density (inertia-box fluid model)",
+            measured=drag_measured,
             in_flight=True,
         ),
         # Wind only acts through the fluid, so its fit starts with some fluid present (else it has no gradient).
@@ -93,6 +98,7 @@ def library(width: float, gravity_scale: float = 1.0, gravity_measured: bool = F
             ),
             "a steady wind",
             "option density + wind",
+            measured=drag_measured,
             in_flight=True,
         ),
         Effect(

@@ -133,8 +133,9 @@ class Diagnosis:
         self.context_frames = context_frames
         self.rng = np.random.default_rng(seed)
         self.seed = seed
-        # First, model-free: do bodies in free flight fall at meta.gravity? (Its own generator: the steps' draws stay
-        # as they were.) Its train measurement is where the gravity_scale effect's fit starts.
+        # First, model-free: do bodies in free flight fall at meta.gravity, and does a drag slow them? (Its own
+        # generator: the steps' draws stay as they were.) Its train measurement is where the gravity_scale effect's
+        # fit starts.
         self.free_flight = free_flight.check(
             dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence
         )
@@ -142,6 +143,7 @@ class Diagnosis:
             float(dataset.widths().max()),
             self.free_flight["scale"] or 1.0,
             bool(self.free_flight.get("apparent_gravity")),
+            bool(self.free_flight.get("drag_measured")),
         )
         train, val = dataset.split("train"), dataset.split("val")
         fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
@@ -259,7 +261,10 @@ class Diagnosis:
         current_train = float(self.train_fit.loss(current, values[None])[0])
         records: list[dict] = []
         for round_ in range(self.budget.max_effects):
-            remaining = [e for e in self.library.values() if e.name not in current.names]
+            # Not an effect already named, nor one named effect's special case (air_drag beside wind: a second fluid
+            # density, which a measured drag would otherwise let pass on noise).
+            inside = {SPECIAL_CASES.get(name) for name in current.names}
+            remaining = [e for e in self.library.values() if e.name not in current.names and e.name not in inside]
             if not remaining:
                 break
             screened = []

@@ -47,11 +47,22 @@ def budget_sentence(document: dict) -> str:
 def summary_sentence(document: dict) -> str:
     text = _verdict_sentence(document)
     falling = document.get("free_flight") or {}
-    if document["verdict"] in ("none", "unconfirmed") and falling.get("confirmed"):
+    found = []
+    if falling.get("confirmed"):
+        found.append(
+            f"bodies in free flight fall at {falling['splits']['test']['along_gravity']:.3f} m/s² on test (train "
+            f"{falling['scale']:.4f} × meta.gravity)"
+        )
+    if falling.get("drag_confirmed"):
+        test = falling["splits"]["test"]
+        found.append(
+            f"a drag slows them (k = {test['drag_per_m']:.3f}/m on test, 95% CI {test['drag_ci95'][0]:.3f} to "
+            f"{test['drag_ci95'][1]:.3f})"
+        )
+    if document["verdict"] in ("none", "unconfirmed") and found:
         text += (
-            " Nothing the simulator models is confirmed on the held-out tosses; the one confirmed finding is "
-            f"model-free: bodies in free flight fall at {falling['splits']['test']['along_gravity']:.3f} m/s² on "
-            f"test (train {falling['scale']:.4f} × meta.gravity; see the free-flight section)."
+            " Nothing the simulator models is confirmed on the held-out tosses; what is confirmed is model-free: "
+            f"{' and '.join(found)}; see the free-flight section."
         )
     if not document.get("conclusive", True):
         text = f"At budget={document.get('budget_name')} (not conclusive): {text}"
