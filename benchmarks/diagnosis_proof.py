@@ -11,12 +11,12 @@ as `python diagnose.py` (quick budget unless --budget), and only then scored aga
 
 The "tuning" cases are the ones the method was developed on; the "held_out" cases (other seeds, strengths and
 shapes, no recorded velocities, two effects at once) were run to report, and then looked into; each later set
-("held_out_2" ... "held_out_11": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
+("held_out_2" ... "held_out_12": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
 changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py --set held_out_11     # one set (17-21 cases, 13-25 min on 2 cores)
+    python benchmarks/diagnosis_proof.py --set held_out_12     # one set (17-23 cases, 13-25 min on 2 cores)
     python benchmarks/diagnosis_proof.py --only floor_tilt      # the cases with floor_tilt
 """
 
@@ -60,6 +60,7 @@ SETS = (
     "held_out_9",
     "held_out_10",
     "held_out_11",
+    "held_out_12",
 )
 # Where each outside-library effect acts: an `unexplained` verdict must locate the mismatch in one of these phases.
 ACTS_IN = {
@@ -347,7 +348,37 @@ def cases() -> list[dict]:
         case("octahedron", ("floor_viscosity",), 2.0, seed=41, velocities=False, kind="held_out_11"),
         case("tetrahedron", ("spin_damping",), 3.0, seed=41, kind="held_out_11"),
     ]
-    return tuning + held + second + third + fourth + fifth + sixth + seventh + eighth + ninth + tenth + eleventh
+    # Written after held_out_11 had been seen (an octahedron's air drag beside a floor tilt was lost: 2.6% of its
+    # round's loss; free flight now measures drag model-free, and a measured drag is practically meaningful), run
+    # once: seed 43, a null for every shape, every library effect, two pairs, every outside effect.
+    twelfth = [
+        case("cube", seed=43, kind="held_out_12"),
+        case("dodecahedron", seed=43, velocities=False, kind="held_out_12"),
+        case("rhombicuboctahedron", seed=43, kind="held_out_12"),
+        case("tetrahedron", seed=43, velocities=False, kind="held_out_12"),
+        case("icosahedron", seed=43, kind="held_out_12"),
+        case("truncated_octahedron", seed=43, velocities=False, kind="held_out_12"),
+        case("octahedron", seed=43, kind="held_out_12"),
+        case("cube", ("air_drag",), 1.0, seed=43, velocities=False, kind="held_out_12"),
+        case("truncated_octahedron", ("wind",), 1.5, seed=43, kind="held_out_12"),
+        case("cube", ("torsional_friction",), 2.0, seed=43, kind="held_out_12"),
+        case("dodecahedron", ("rolling_friction",), 1.5, seed=43, velocities=False, kind="held_out_12"),
+        case("icosahedron", ("anisotropic_friction",), 2.0, seed=43, kind="held_out_12"),
+        case("octahedron", ("com_offset",), 1.5, seed=43, kind="held_out_12"),
+        case("cube", ("inertia_mismatch",), 2.0, seed=43, velocities=False, kind="held_out_12"),
+        case("rhombicuboctahedron", ("floor_offset",), 1.5, seed=43, kind="held_out_12"),
+        case("tetrahedron", ("floor_tilt",), 1.0, seed=43, kind="held_out_12"),
+        case("truncated_octahedron", ("gravity_scale",), 2.0, seed=43, velocities=False, kind="held_out_12"),
+        case("cube", ("air_drag", "inertia_mismatch"), 1.5, seed=43, kind="held_out_12"),
+        case("dodecahedron", ("wind", "floor_offset"), 1.5, seed=43, kind="held_out_12"),
+        case("octahedron", ("coriolis",), 1.0, seed=43, velocities=False, kind="held_out_12"),
+        case("truncated_octahedron", ("floor_centring",), 1.5, seed=43, kind="held_out_12"),
+        case("icosahedron", ("floor_viscosity",), 2.0, seed=43, kind="held_out_12"),
+        case("octahedron", ("spin_damping",), 3.0, seed=43, kind="held_out_12"),
+    ]
+    return (
+        tuning + held + second + third + fourth + fifth + sixth + seventh + eighth + ninth + tenth + eleventh + twelfth
+    )
 
 
 def case_name(case: dict) -> str:

@@ -1,13 +1,12 @@
-"""A model-free first check: do bodies in free flight fall at meta.gravity?
+"""A model-free first check: do bodies in free flight fall at meta.gravity, and does a drag slow them?
 
-In free flight the centre of mass obeys x'' = g exactly, so the second difference of its recorded positions over
-dt^2 measures the acceleration the recordings actually show, with no simulator and no fitted parameter. A
-vertical acceleration other than meta.gravity means the recordings' time base or length scale is off (a true frame
-interval of sqrt(a / g) dt, or positions scaled by a / g), or meta.gravity itself is wrong; MuJoCo can express all
-three as a scaled gravity (library effect `gravity_scale`). Fit on train, decide on val, confirm on test. Only an
-acceleration that is the same for every frame is an apparent gravity: one that grows with speed (air drag, wind) or
-points across gravity is a force. The second measurement is that force's drag-like part: a deceleration k |v| v
-against the motion (quadratic drag; wind is drag in moving air), which the library models as `air_drag` / `wind`.
+In free flight the centre of mass obeys x'' = g exactly (in vacuum), so the second difference of its recorded
+positions over dt^2 measures the acceleration the recordings actually show, with no simulator and no fitted
+parameter. It is fitted as a constant plus a quadratic drag, a = c - k |v| v. A fall c other than meta.gravity means
+the recordings' time base or length scale is off (a true frame interval of sqrt(a / g) dt, or positions scaled by
+a / g), or meta.gravity itself is wrong; MuJoCo can express all three as a scaled gravity (library effect
+`gravity_scale`). A k above zero is drag (wind is drag in moving air): library effects `air_drag` / `wind`. Fit on
+train, decide on val, confirm on test.
 """
 
 from __future__ import annotations
