@@ -542,7 +542,11 @@ def summarise(rows: list[dict], seconds: float) -> dict:
         f"{max((r['seconds'] for r in rows), default=0):.0f} s for the slowest)",
         "",
         f"- library effects named right: {_rate(library_rows)} (goal >= 95%); "
-        + ", ".join(f"{name} {_rate([r for r in library_rows if r['set'] == name])}" for name in SETS),
+        + ", ".join(
+            f"{name} {_rate([r for r in library_rows if r['set'] == name])}"
+            for name in SETS
+            if any(r["set"] == name for r in library_rows)
+        ),
         f"- wrong names: {len(wrong)} (goal 0){': ' + ', '.join(wrong) if wrong else ''}",
         f"- false alarms: {len(false_alarms)} of {len(null_rows)} nulls (goal 0)"
         f"{': ' + ', '.join(false_alarms) if false_alarms else ''}",

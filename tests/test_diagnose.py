@@ -260,10 +260,11 @@ def test_the_conclusive_budgets_fit_every_library_effect_in_full(budget, tmp_pat
 
 
 def test_a_later_effect_must_close_the_later_margin_of_its_rounds_model():
+    from contactbench.diagnosis.free_flight import MEASURED
     from contactbench.diagnosis.library import library
     from contactbench.diagnosis.pipeline import Decision
 
-    decision, effects = Decision(), library(0.1, gravity_scale=0.978, gravity_measured=True)
+    decision, effects = Decision(), library(0.1, gravity_scale=0.978, gravity=MEASURED)
     drag = effects["air_drag"]
     # first round: a share of the base simulator's loss
     assert decision.meaningful(drag, True, closes_of_base=0.06, improvement=0.06)
@@ -273,6 +274,22 @@ def test_a_later_effect_must_close_the_later_margin_of_its_rounds_model():
     assert not decision.meaningful(drag, False, closes_of_base=0.2, improvement=0.08)
     # an apparent gravity measured in free flight is meaningful by that measurement
     assert decision.meaningful(effects["gravity_scale"], False, closes_of_base=0.0, improvement=0.0)
+
+
+def test_free_flight_decides_for_the_effects_it_can_measure_and_rule_out():
+    from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED, RULED_OUT
+    from contactbench.diagnosis.library import library
+    from contactbench.diagnosis.pipeline import Decision
+
+    decision = Decision()
+    for evidence, first, later in ((MEASURED, True, True), (RULED_OUT, False, False), (INCONCLUSIVE, True, False)):
+        effects = library(0.1, drag=evidence, gravity=evidence)
+        for name in ("air_drag", "wind", "gravity_scale"):
+            # a gain of 6% of the base loss in the first round, 1% of the round's model's loss in a later one
+            assert decision.meaningful(effects[name], True, closes_of_base=0.06, improvement=0.06) == first
+            assert decision.meaningful(effects[name], False, closes_of_base=0.01, improvement=0.01) == later
+        # effects free flight cannot show keep the rule alone
+        assert effects["floor_tilt"].evidence == INCONCLUSIVE
 
 
 def test_a_later_effect_below_the_later_margin_needs_its_gain_in_free_flight():

@@ -51,7 +51,10 @@ def test_a_concealed_air_drag_is_measured_in_free_flight_and_the_fall_net_of_it_
     null = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False))
     plain = free_flight.check(null.for_models(list(null.splits)), rng, draws=200)
     assert not plain["drag_measured"] and abs(plain["splits"]["val"]["drag_deceleration_m_s2"]) < 1e-6
-    assert "no drag beyond" in plain["sentence"]
+    # exact ballistic flight rules out both a drag and an apparent gravity
+    assert plain["drag_evidence"] == plain["gravity_evidence"] == free_flight.RULED_OUT
+    assert "a drag is ruled out" in plain["sentence"]
+    assert found["drag_evidence"] == free_flight.MEASURED
 
 
 def test_free_frames_leave_out_contact_and_the_ends(tmp_path):

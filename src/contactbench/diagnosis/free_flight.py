@@ -29,6 +29,10 @@ MARGIN = 0.005
 # m/s. (Synthetic tosses with twice the library's reference drag fall at >= 0.75 g; a floor tilted by 0.04 rad left
 # 900 of 3800 "free" val frames of a truncated octahedron below 0.5 g; the real cube 1 of 1802.)
 SUPPORTED = 0.5
+# What free flight says of an effect that must show there (an apparent gravity, a drag): on val it is measured
+# (beyond MARGIN, significant), ruled out (its whole interval within MARGIN of none), or inconclusive (neither: too
+# few or too noisy free-flight frames to tell).
+MEASURED, RULED_OUT, INCONCLUSIVE = "measured", "ruled out", "inconclusive"
 
 
 def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
@@ -124,7 +128,8 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
     differs by more than the drag decelerates at a typical speed (what an error in the drag's form may shift: twice
     the reference drag moved a cube's fall by 0.4%). The drag: measured where on val its interval lies above zero
     and it decelerates by at least MARGIN of |meta.gravity| at a typical speed, confirmed where test's interval lies
-    above zero too."""
+    above zero too. Each is then MEASURED, RULED_OUT (val's interval of the fall within MARGIN of meta.gravity; of
+    the drag's deceleration below MARGIN) or INCONCLUSIVE: `gravity_evidence`, `drag_evidence`."""
     gravity = np.asarray(dataset.gravity, dtype=float)
     g = float(np.linalg.norm(gravity))
     down = gravity / g
@@ -148,6 +153,8 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
             differs=False,
             confirmed=False,
             drag_measured=False,
+            gravity_evidence=INCONCLUSIVE,
+            drag_evidence=INCONCLUSIVE,
             sentence="Too few free-flight frames in some split to measure the free-fall acceleration.",
         )
         return out
@@ -163,8 +170,11 @@ def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, conf
         and not pushed
         and abs(val["scale"] - 1) * g > abs(val["drag_deceleration_m_s2"])
     )
+    speed_squared = val["median_speed_m_s"] ** 2
     out.update(
         apparent_gravity=differs and gravity_like,  # what the gravity_scale effect may lean on
+        gravity_evidence=_evidence(differs and gravity_like, 1 - MARGIN <= low and high <= 1 + MARGIN),
+        drag_evidence=_evidence(drag_measured, val["drag_ci95"][1] * speed_squared < MARGIN * g),
         scale=scale,
         frame_interval_factor=float(np.sqrt(scale)),  # the true frame interval / meta.dt, if the time base is off
         frame_rate=float(1.0 / (np.sqrt(scale) * dataset.dt)),
@@ -211,6 +221,10 @@ def fall_sentence(found: dict) -> str:
     )
 
 
+def _evidence(measured: bool, ruled_out: bool) -> str:
+    return MEASURED if measured else RULED_OUT if ruled_out else INCONCLUSIVE
+
+
 def drag_sentence(found: dict) -> str:
     parts = ", ".join(
         f"{name} {part['drag_per_m']:.3f} [{part['drag_ci95'][0]:.3f}, {part['drag_ci95'][1]:.3f}]"
@@ -221,7 +235,9 @@ def drag_sentence(found: dict) -> str:
         f"Drag in free flight, a = c - k|v|v (k in 1/m, 95% CI): {parts}; on val it decelerates by "
         f"{val['drag_deceleration_m_s2']:.3f} m/s² at the median speed {val['median_speed_m_s']:.2f} m/s"
     )
+    if found["drag_evidence"] == RULED_OUT:
+        return f"{head}: a drag is ruled out (its 95% interval decelerates by less than {MARGIN:.1%} of meta.gravity)."
     if not found["drag_measured"]:
-        return f"{head}: no drag beyond {MARGIN:.1%} of meta.gravity (val)."
+        return f"{head}: no drag beyond {MARGIN:.1%} of meta.gravity is measured, nor ruled out (val)."
     verdict = "confirmed on test" if found["drag_confirmed"] else "NOT confirmed on test"
     return f"{head}: a drag (still or moving air) beyond {MARGIN:.1%} of meta.gravity, {verdict}."

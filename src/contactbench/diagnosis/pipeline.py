@@ -62,8 +62,9 @@ class Decision:
     loss, wrong ones up to 15%; measured against the base loss instead, a large first effect left true second
     effects at 2.2% and 4.1%), or with that much removed per free-flight segment (`flies`: a true wind beside a
     floor tilt closed 5.2% of the loss and 76% of the free-flight loss). An effect a model-free
-    measurement already shows beyond that measurement's own margin (an apparent gravity in free flight) is practically
-    meaningful by that measurement, and needs only the significance and the BIC.
+    measurement already shows beyond that measurement's own margin (an apparent gravity or a drag in free flight) is
+    practically meaningful by that measurement, and needs only the significance and the BIC; one it rules out is not
+    meaningful, whatever it gains.
 
     The open-world correction (physics nobody listed) closes `contact_margin` instead where it acts in contact: there
     two engines disagree with nothing concealed (PyBullet nulls give MuJoCo corrections closing up to 6.0% of the val
@@ -77,8 +78,8 @@ class Decision:
     def meaningful(
         self, effect: Effect, first_round: bool, closes_of_base: float, improvement: float, airborne: dict | None = None
     ) -> bool:
-        if effect.measured:
-            return True
+        if effect.measured or effect.ruled_out:
+            return effect.measured
         if first_round:
             return closes_of_base >= self.margin
         return improvement >= self.later_margin or self.flies(airborne)
@@ -142,8 +143,8 @@ class Diagnosis:
         self.library = library(
             float(dataset.widths().max()),
             self.free_flight["scale"] or 1.0,
-            bool(self.free_flight.get("apparent_gravity")),
-            bool(self.free_flight.get("drag_measured")),
+            self.free_flight["gravity_evidence"],
+            self.free_flight["drag_evidence"],
         )
         train, val = dataset.split("train"), dataset.split("val")
         fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
@@ -299,6 +300,8 @@ class Diagnosis:
                     self.refit_control(effect, record, current, trial, trial_values, val, current_train, base_val)
                 if effect.measured:
                     record["measured_model_free"] = True
+                if effect.ruled_out:
+                    record["ruled_out_model_free"] = True
                 records.append(record)
                 fitted.append((record, trial, trial_values, val, train_loss))
                 log.info(
@@ -741,8 +744,9 @@ def run_diagnosis(
             "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
             "closing >= margin of the base simulator's val loss in the first round and >= later_margin of its "
             "round's model's val loss after it or a significant gain on the val segments in free flight that removes "
-            ">= later_margin of it (or, for gravity_scale, an apparent gravity measured model-free in "
-            "free flight on val), and delta BIC < 0 on train; then the same against the model of its round refitted "
+            ">= later_margin of it (or, for gravity_scale, an apparent gravity, for air_drag and wind, a drag, "
+            "measured model-free in free flight on val; never where free flight rules it out), and delta BIC < 0 on "
+            "train; then the same against the model of its round refitted "
             "from the candidate's own values, where that refit gains on train (the refit control). Confirmed on the "
             "held-out test tosses: the short-horizon loss or the full rollouts' position error improves there "
             "(either 97.5% interval above zero) and the full rollouts' position error does not get worse",

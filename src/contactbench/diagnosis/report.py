@@ -248,6 +248,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''}"
             f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''}"
             f"{' (margin: its gain in free flight)' if by_flight and not c.get('measured_model_free') else ''}"
+            f"{' (ruled out in free flight)' if c.get('ruled_out_model_free') else ''}"
             f"{' (fitted below its resolution: not this physics)' if c.get('negligible') else ''}"
             f"{_special_case_note(c)}{_refit_control_note(c)} |"
         )
@@ -272,16 +273,18 @@ def _markdown(document: dict, figures: list[Path]) -> str:
 
 def _free_flight_table(found: dict) -> list[str]:
     lines = [
-        "| split | tosses | free-flight frames | acceleration x, y, z (m/s²) | along gravity, 95% CI |",
-        "|---|---|---|---|---|",
+        "| split | tosses | free-flight frames | fall c: x, y, z (m/s²) | c along gravity, 95% CI | drag k (1/m), "
+        "95% CI |",
+        "|---|---|---|---|---|---|",
     ]
     for name, part in found["splits"].items():
-        if part.get("n_frames"):
-            ci = part["along_gravity_ci95"]
+        if "acceleration" in part:
+            ci, drag_ci = part["along_gravity_ci95"], part["drag_ci95"]
             lines.append(
                 f"| {name} | {part['n_trajectories']} | {part['n_frames']} | "
                 f"{', '.join(f'{a:.3f}' for a in part['acceleration'])} | "
-                f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] |"
+                f"{part['along_gravity']:.3f} [{ci[0]:.3f}, {ci[1]:.3f}] | "
+                f"{part['drag_per_m']:.3f} [{drag_ci[0]:.3f}, {drag_ci[1]:.3f}] |"
             )
     return lines + [""]
 
