@@ -292,6 +292,23 @@ def test_free_flight_decides_for_the_effects_it_can_measure_and_rule_out():
         assert effects["floor_tilt"].evidence == INCONCLUSIVE
 
 
+def test_a_candidate_that_misses_significance_may_still_rival_the_best():
+    from contactbench.diagnosis.pipeline import Decision
+
+    # a cube's true rolling friction in held out 13: 5.1% on val (CI from -1.7%), a lower BIC than the inertia named
+    rolling = {"val_improvement": 0.051, "ci95": [-0.017, 0.115], "delta_bic": -6159.0, "negligible": False}
+    assert Decision.may_rival(rolling)
+    for but in (
+        {"val_improvement": -0.01},
+        {"delta_bic": 3.0},
+        {"negligible": True},
+        {"ruled_out_model_free": True},
+        {"refit_control": {"passes": False}},
+        {"no_better_than": "air_drag"},
+    ):
+        assert not Decision.may_rival({**rolling, **but})
+
+
 def test_a_later_effect_below_the_later_margin_needs_its_gain_in_free_flight():
     from contactbench.diagnosis.library import library
     from contactbench.diagnosis.pipeline import Decision

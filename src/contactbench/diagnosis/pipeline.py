@@ -92,6 +92,21 @@ class Decision:
         to a free flight that the round's model already fits, refitting its parameters "gains" up to 97%."""
         return airborne is not None and airborne["ci95"][0] > 0 and airborne["removed_per_segment"] >= self.later_margin
 
+    @staticmethod
+    def may_rival(record: dict) -> bool:
+        """Whether a fitted candidate of a round (its record) that does not pass could still be the physics behind
+        what the best passing one gains, if val cannot tell the two apart: it improves val and lowers the BIC at a
+        resolved value, free flight does not rule it out, and it was not refitted away (its refit control) or found
+        no better than its special case."""
+        return bool(
+            record["val_improvement"] > 0
+            and record["delta_bic"] < 0
+            and not record["negligible"]
+            and not record.get("ruled_out_model_free")
+            and "refit_control" not in record
+            and "no_better_than" not in record
+        )
+
     def open_world_margin(self, phase: str) -> float:
         """What an open-world correction located in `phase` must close of the base val loss."""
         return self.margin if phase == PHASES[FREE] else self.contact_margin
@@ -329,17 +344,23 @@ class Diagnosis:
             if not passing:
                 break
             best = max(passing, key=lambda item: item[0]["val_improvement"])
-            # The effects the val data cannot tell from the best: paired against it, trajectory by trajectory.
+            # The effects the val data cannot tell from the best: paired against it, trajectory by trajectory. Not
+            # only passing ones: a rival may miss significance against the base and still fit val as well as the best
+            # (a cube's true rolling friction, 5.1% with a CI from -1.7% as cubes seldom roll, beside an inertia
+            # that passed at 6.6% and was named). Free flight tells a tie apart where it measures one of them.
             tied = [
                 item
-                for item in passing
+                for item in fitted
                 if item is best
-                or bootstrap_ratio(best[3], item[3], self.budget.bootstrap, self.rng, self.decision.confidence)[1][1]
+                or (item[0]["passes"] or self.decision.may_rival(item[0]))
+                and bootstrap_ratio(best[3], item[3], self.budget.bootstrap, self.rng, self.decision.confidence)[1][1]
                 >= 0
             ]
+            tied = [item for item in tied if self.library[item[0]["name"]].measured] or tied
             chosen = min(tied, key=lambda item: (len(item[1].parameters), -item[0]["val_improvement"]))
-            rivals = [item[0]["name"] for item in tied if not _nested(item[1], chosen[1])]
-            if len(rivals) > 1:  # not one effect inside another (air_drag in wind): the data cannot say which
+            # The chosen one and each tied effect not inside it or around it (air_drag in wind)
+            rivals = [chosen[0]["name"]] + [item[0]["name"] for item in tied if not _nested(item[1], chosen[1])]
+            if len(rivals) > 1:  # the data cannot say which
                 for item in tied:
                     item[0]["confounded_with"] = [name for name in rivals if name != item[0]["name"]]
                 if not current.effects:  # a tie in a later round adds nothing, the named effects stand
