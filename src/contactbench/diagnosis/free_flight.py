@@ -84,27 +84,30 @@ def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: 
     the drag causes at a typical speed."""
     free = free_frames(dataset, split)
     velocity, acceleration = centre_motion(dataset, split)
-    used = np.flatnonzero(free.any(axis=(1, 2)))
+    used, rows = np.unique(np.nonzero(free)[0], return_inverse=True)  # the tosses that fly; each frame's toss
     if len(used) < 2:
         return {"n_trajectories": int(len(used)), "n_frames": int(free.sum())}
-    # Per trajectory, the normal equations of the fit (so that a resample only sums them): unknowns c_x, c_y, c_z, k.
+    # Per toss, the normal equations of the fit, so that a resample only weights them: unknowns c_x, c_y, c_z, k.
+    v, a = velocity[free], acceleration[free]  # [F, 3]
+    design = np.zeros((len(v), 3, 4))
+    design[:, :, :3] = np.eye(3)
+    design[:, :, 3] = -np.linalg.norm(v, axis=-1, keepdims=True) * v
     normal, moment = np.zeros((len(used), 4, 4)), np.zeros((len(used), 4))
-    for row, n in enumerate(used):
-        v, a = velocity[n][free[n]], acceleration[n][free[n]]  # [F, 3]
-        design = np.zeros((len(v), 3, 4))
-        design[:, :, :3] = np.eye(3)
-        design[:, :, 3] = -np.linalg.norm(v, axis=-1, keepdims=True) * v
-        design = design.reshape(-1, 4)
-        normal[row], moment[row] = design.T @ design, design.T @ a.reshape(-1)
-
-    def fit(rows: np.ndarray) -> np.ndarray:
-        return np.linalg.lstsq(normal[rows].sum(axis=0), moment[rows].sum(axis=0), rcond=None)[0]
-
-    point = fit(np.arange(len(used)))
-    samples = np.array([fit(rows) for rows in rng.integers(0, len(used), size=(draws, len(used)))])  # [draws, 4]
+    np.add.at(normal, rows, np.einsum("fki,fkj->fij", design, design))
+    np.add.at(moment, rows, np.einsum("fki,fk->fi", design, a))
+    picks = rng.integers(0, len(used), size=(draws, len(used)))
+    weights = np.zeros((draws + 1, len(used)))  # row 0: every toss once (the point estimate); then the resamples
+    weights[0] = 1
+    np.add.at(weights, (np.arange(1, draws + 1)[:, None], picks), 1)
+    solved = np.einsum(
+        "dij,dj->di",
+        np.linalg.pinv(np.einsum("dn,nij->dij", weights, normal)),
+        weights @ moment,
+    )  # [draws + 1, 4]
+    point, samples = solved[0], solved[1:]
     tail = (1.0 - confidence) / 2 * 100
     ci = np.percentile(samples, [tail, 100 - tail], axis=0).T  # [4, 2]
-    speed_squared = float(np.median(np.sum(velocity[free] ** 2, axis=-1)))
+    speed_squared = float(np.median(np.sum(v**2, axis=-1)))
     return {
         "n_trajectories": int(len(used)),
         "n_frames": int(free.sum()),
