@@ -9,7 +9,6 @@ from test_diagnose import SMALL, concealed, diagnose
 
 from contactbench.diagnosis import open_world
 from contactbench.diagnosis.phases import FREE, PHASES, SLIDING
-from contactbench.diagnosis.pipeline import Decision
 
 DT = 0.01
 
@@ -28,15 +27,15 @@ def test_a_constant_acceleration_integrates_to_half_a_t_squared_on_the_frame_gri
     assert not dictionary.linear[..., SLIDING, :].any()  # gated: no sliding frame, no sliding column
 
 
-def planted(rng, coefficient=None):
+def planted(rng, coefficient=None, output=1):
     m, length, k = 200, 16, 1
     features = rng.normal(size=(m, length, k, len(open_world.FEATURES)))
     phases = rng.choice([FREE, SLIDING], size=(m, length, k))
     dictionary = open_world.integrate(features, phases, DT, np.array([0.1]))
     noise = 1e-3 * rng.normal(size=(m, length, k, 6))
     residuals = noise.copy()
-    if coefficient is not None:  # the simulator misses a sliding-phase force along y proportional to v_x
-        residuals[..., 1] -= coefficient * dictionary.column(1, SLIDING, open_world.FEATURES.index("v_x"))
+    if coefficient is not None:  # the simulator misses a sliding-phase force along `output` proportional to v_x
+        residuals[..., output] -= coefficient * dictionary.column(output, SLIDING, open_world.FEATURES.index("v_x"))
     return dictionary, residuals
 
 
@@ -68,8 +67,13 @@ def test_physics_outside_the_library_is_unexplained_and_located_where_it_acts(tm
     assert "Something the library does not list is missing" in report and "| linear_" in report
 
 
-def test_a_correction_in_contact_must_close_more_than_one_in_free_flight():
-    # engines differ in contact with nothing concealed, not in free flight: the open world's margin says so
-    decision = Decision(margin=0.05, contact_margin=0.10)
-    assert decision.open_world_margin(PHASES[FREE]) == 0.05
-    assert all(decision.open_world_margin(phase) == 0.10 for phase in PHASES if phase != PHASES[FREE])
+def test_the_contact_normal_is_left_to_the_contact_model_but_not_in_free_flight():
+    # engines' soft contacts sink and lift a touching body differently with nothing concealed: not physics nobody listed
+    dictionary, residuals = planted(np.random.default_rng(2), coefficient=-2.5, output=open_world.NORMAL)
+    found = open_world.fit_correction(dictionary, residuals, 1.0, 4, np.ones(len(residuals), bool))
+    assert all(output != open_world.NORMAL or phase == FREE for output, phase, _ in found.terms)
+    rng = np.random.default_rng(3)
+    dictionary, residuals = planted(rng)
+    residuals[..., open_world.NORMAL] -= 2.5 * dictionary.column(open_world.NORMAL, FREE, 0)  # a weaker gravity
+    found = open_world.fit_correction(dictionary, residuals, 1.0, 4, np.ones(len(residuals), bool))
+    assert (open_world.NORMAL, FREE, 0) in found.terms

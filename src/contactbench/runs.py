@@ -256,7 +256,7 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     document, arrays = run_diagnosis(
         dataset,
         Budget(**cfg.budget.diagnose),
-        Decision(margin=float(cfg.margin), contact_margin=float(cfg.open_world_contact_margin)),
+        Decision(margin=float(cfg.margin)),
         seed=int(cfg.seed),
         context_frames=int(cfg.context_frames),
     )

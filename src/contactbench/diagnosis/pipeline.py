@@ -64,15 +64,12 @@ class Decision:
     floor tilt closed 5.2% of the loss and 76% of the free-flight loss). An effect a model-free
     measurement already shows beyond that measurement's own margin (an apparent gravity or a drag in free flight) is
     practically meaningful by that measurement, and needs only the significance and the BIC; one it rules out is not
-    meaningful, whatever it gains.
-
-    The open-world correction (physics nobody listed) closes `contact_margin` instead where it acts in contact: there
-    two engines disagree with nothing concealed (PyBullet nulls give MuJoCo corrections closing up to 6.0% of the val
-    loss, a tetrahedron sliding on its edges), while in free flight every engine integrates the same law."""
+    meaningful, whatever it gains. The open-world correction (physics nobody listed) must close `margin` of the base
+    val loss too: it leaves out the impacts and the contact normal, where two engines disagree with nothing concealed
+    (diagnosis.open_world)."""
 
     margin: float = 0.05
     later_margin: float = 0.10
-    contact_margin: float = 0.10
     confidence: float = 0.95
 
     def meaningful(
@@ -106,10 +103,6 @@ class Decision:
             and "refit_control" not in record
             and "no_better_than" not in record
         )
-
-    def open_world_margin(self, phase: str) -> float:
-        """What an open-world correction located in `phase` must close of the base val loss."""
-        return self.margin if phase == PHASES[FREE] else self.contact_margin
 
 
 def _pick(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
@@ -519,8 +512,7 @@ class Diagnosis:
                 )
             )
             delta_bic = n_residuals * np.log(train_after / train_before) + len(correction.terms) * np.log(n_residuals)
-            located = self._open_world_location(val, correction)
-            margin = self.decision.open_world_margin(located["phase"])
+            margin = self.decision.margin
             record.update(
                 {
                     "val_improvement": improvement,
@@ -528,7 +520,7 @@ class Diagnosis:
                     "delta_bic": float(delta_bic),
                     "margin": margin,
                     "passes": bool(ci[0] > 0 and improvement >= margin and delta_bic < 0),
-                    "located": located,
+                    "located": self._open_world_location(val, correction),
                 }
             )
             if record["passes"]:
@@ -760,7 +752,6 @@ def run_diagnosis(
         "decision_rule": {
             "margin": decision.margin,
             "later_margin": decision.later_margin,
-            "contact_margin": decision.contact_margin,
             "confidence": decision.confidence,
             "rule": "val improvement over the model of its round > 0 at 95% (paired bootstrap over trajectories), "
             "closing >= margin of the base simulator's val loss in the first round and >= later_margin of its "

@@ -194,8 +194,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         budget_sentence(document),
         "",
         f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: "
-        f"{rule['rule']}. Margins: {rule['margin']:.0%} (first round), {rule['later_margin']:.0%} (later rounds), "
-        f"{rule['contact_margin']:.0%} (an open-world correction in contact).",
+        f"{rule['rule']}. Margins: {rule['margin']:.0%} (first round and the open-world correction), "
+        f"{rule['later_margin']:.0%} (later rounds).",
         "",
         "## First, model-free: free flight",
         "",
