@@ -11,12 +11,12 @@ as `python diagnose.py` (quick budget unless --budget), and only then scored aga
 
 The "tuning" cases are the ones the method was developed on; the "held_out" cases (other seeds, strengths and
 shapes, no recorded velocities, two effects at once) were run to report, and then looked into; each later set
-("held_out_2" ... "held_out_14": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
+("held_out_2" ... "held_out_15": new seeds, shapes and strengths) was written before the diagnosis saw it, after the
 changes its predecessor prompted, and run once. For named cases it also reports
 the fraction of the excess held-out error closed, (base - augmented) / (base - base on the same tosses generated
 without the effect). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py --set held_out_14     # one set (17-23 cases, 13-25 min on 2 cores)
+    python benchmarks/diagnosis_proof.py --set held_out_15     # one set (17-23 cases, 13-25 min on 2 cores)
     python benchmarks/diagnosis_proof.py --only floor_tilt      # the cases with floor_tilt
 """
 
@@ -63,6 +63,7 @@ SETS = (
     "held_out_12",
     "held_out_13",
     "held_out_14",
+    "held_out_15",
 )
 # Where each outside-library effect acts: an `unexplained` verdict must locate the mismatch in one of these phases.
 ACTS_IN = {
@@ -433,6 +434,34 @@ def cases() -> list[dict]:
         case("octahedron", ("floor_viscosity",), 2.0, seed=53, kind="held_out_14"),
         case("truncated_octahedron", ("spin_damping",), 3.0, seed=53, velocities=False, kind="held_out_14"),
     ]
+    # Written after held_out_14 had been seen (the open world leaves the contact normal to the contact model and closes
+    # 5% of the base loss wherever it acts; an effect free flight measures may show its significance there), run once:
+    # seed 59, a null for every shape, every library effect, two pairs, every outside effect.
+    fifteenth = [
+        case("cube", seed=59, kind="held_out_15"),
+        case("dodecahedron", seed=59, velocities=False, kind="held_out_15"),
+        case("octahedron", seed=59, kind="held_out_15"),
+        case("tetrahedron", seed=59, kind="held_out_15"),
+        case("icosahedron", seed=59, velocities=False, kind="held_out_15"),
+        case("rhombicuboctahedron", seed=59, kind="held_out_15"),
+        case("truncated_octahedron", seed=59, velocities=False, kind="held_out_15"),
+        case("tetrahedron", ("air_drag",), 2.0, seed=59, velocities=False, kind="held_out_15"),
+        case("octahedron", ("wind",), 1.0, seed=59, kind="held_out_15"),
+        case("dodecahedron", ("torsional_friction",), 2.0, seed=59, kind="held_out_15"),
+        case("icosahedron", ("rolling_friction",), 2.0, seed=59, velocities=False, kind="held_out_15"),
+        case("octahedron", ("anisotropic_friction",), 2.0, seed=59, kind="held_out_15"),
+        case("tetrahedron", ("com_offset",), 1.5, seed=59, kind="held_out_15"),
+        case("truncated_octahedron", ("inertia_mismatch",), 2.0, seed=59, velocities=False, kind="held_out_15"),
+        case("cube", ("floor_offset",), 1.5, seed=59, kind="held_out_15"),
+        case("icosahedron", ("floor_tilt",), 1.5, seed=59, kind="held_out_15"),
+        case("dodecahedron", ("gravity_scale",), 2.0, seed=59, kind="held_out_15"),
+        case("rhombicuboctahedron", ("air_drag", "com_offset"), 1.5, seed=59, kind="held_out_15"),
+        case("octahedron", ("wind", "floor_offset"), 1.5, seed=59, velocities=False, kind="held_out_15"),
+        case("dodecahedron", ("coriolis",), 1.0, seed=59, velocities=False, kind="held_out_15"),
+        case("icosahedron", ("floor_centring",), 1.5, seed=59, kind="held_out_15"),
+        case("truncated_octahedron", ("floor_viscosity",), 2.0, seed=59, kind="held_out_15"),
+        case("cube", ("spin_damping",), 3.0, seed=59, kind="held_out_15"),
+    ]
     return [
         *tuning,
         *held,
@@ -449,6 +478,7 @@ def cases() -> list[dict]:
         *twelfth,
         *thirteenth,
         *fourteenth,
+        *fifteenth,
     ]
 
 

@@ -194,11 +194,12 @@ def test_an_effect_fitted_below_its_resolution_is_not_named():
 def test_wind_that_gains_nothing_on_air_drag_does_not_pass():
     from types import SimpleNamespace
 
+    from contactbench.diagnosis.library import library
     from contactbench.diagnosis.pipeline import Budget, Decision, Diagnosis
 
     rng = np.random.default_rng(0)
     drag = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses
-    steps = SimpleNamespace(budget=Budget(bootstrap=500), rng=rng, decision=Decision())
+    steps = SimpleNamespace(budget=Budget(bootstrap=500), rng=rng, decision=Decision(), library=library(0.1))
 
     def fitted(wind_val):
         return [
@@ -290,6 +291,23 @@ def test_free_flight_decides_for_the_effects_it_can_measure_and_rule_out():
             assert decision.meaningful(effects[name], False, closes_of_base=0.01, improvement=0.01) == later
         # effects free flight cannot show keep the rule alone
         assert effects["floor_tilt"].evidence == INCONCLUSIVE
+
+
+def test_an_effect_free_flight_measures_may_show_its_significance_there():
+    from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED
+    from contactbench.diagnosis.library import library
+    from contactbench.diagnosis.pipeline import Decision
+
+    # held out 14's drag beside a floor tilt: the whole val +1.6% (CI -5.9% to +8.0%), free flight +29% (CI 14-74%)
+    flying = {"improvement": 0.29, "ci95": [0.14, 0.74], "removed_per_segment": 0.077}
+    measured, unmeasured = library(0.1, drag=MEASURED)["air_drag"], library(0.1, drag=INCONCLUSIVE)["air_drag"]
+    assert Decision.significant(measured, 0.016, [-0.059, 0.080], flying)
+    assert not Decision.significant(unmeasured, 0.016, [-0.059, 0.080], flying)
+    assert not Decision.significant(measured, -0.01, [-0.059, 0.080], flying)  # worse on the whole val
+    assert not Decision.significant(measured, 0.016, [-0.059, 0.080], {**flying, "ci95": [-0.02, 0.74]})
+    assert not Decision.significant(measured, 0.016, [-0.059, 0.080], None)
+    # significance on the whole val is enough for any effect
+    assert Decision.significant(unmeasured, 0.06, [0.01, 0.11], None)
 
 
 def test_a_candidate_that_misses_significance_may_still_rival_the_best():
