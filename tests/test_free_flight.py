@@ -1,14 +1,19 @@
-"""diagnosis.free_flight: the model-free checks of free flight (the fall against meta.gravity, a drag)."""
+"""diagnosis.free_flight: the model-free checks of free flight (the fall against meta.gravity, a drag), and the
+simulator's drag in the same units (diagnosis.simulated_drag)."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
-from contactbench.diagnosis import free_flight
+from contactbench.config import REPO_ROOT
+from contactbench.diagnosis import free_flight, simulated_drag
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.scenes import SceneSpec
 from contactbench.recordings import read_recordings
+from contactbench.sim.mujoco_scene import ContactParameters, SceneEffects, build_model
 
 CUBE = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)
 SIZES = {"train": 10, "val": 10, "test": 10}
@@ -65,3 +70,25 @@ def test_free_frames_leave_out_contact_and_the_ends(tmp_path):
     free = free_flight.free_frames(data, split)
     assert not free[:, 0].any() and not free[:, -1].any()
     assert free.any() and not (free & ~(split.poses[..., 2] > data.widths()[0] * free_flight.CLEARANCE)).any()
+
+
+def test_the_simulated_drag_is_mujocos_box_drag_and_is_compared_with_the_measured_one():
+    real = read_recordings(REPO_ROOT / "assets" / "contactnets_cube", splits=["val"])
+    base = ContactParameters.mujoco_default(1)
+
+    def k(density):
+        parameters = dataclasses.replace(base, effects=SceneEffects(fluid_density=density, wind=(2.0, 0.0, 0.0)))
+        return simulated_drag.drag_per_metre(real, parameters, np.random.default_rng(0))
+
+    # the equivalent box of a cube's inertia: side^2 = 6 I / m; along a face normal F = rho side^2 v^2 / 2, and
+    # along any other direction u the drag on it is that times sum |u_i|^3, between 1/sqrt(3) and 1
+    mass, inertia = build_model(real, base).body_mass[1], real.mass_properties(0)[1][0, 0]
+    along_a_face = 1.2 * 6 * inertia / mass / (2 * mass)
+    still = k(1.2)
+    assert along_a_face / np.sqrt(3) - 1e-9 <= still["range"][0] < still["k_per_m"] < still["range"][1] <= along_a_face
+    assert k(12.0)["k_per_m"] == pytest.approx(10 * still["k_per_m"])  # quadratic drag scales with the density
+    assert k(0.0)["k_per_m"] == 0.0
+    measured = {"drag_per_m": 0.037, "drag_ci95": [0.015, 0.063]}
+    assert simulated_drag.against_free_flight(still, measured)["consistent"]
+    strong = simulated_drag.against_free_flight(k(6.94), measured)
+    assert not strong["consistent"] and strong["ratio"] > 2

@@ -98,11 +98,37 @@ def _verdict_sentence(document: dict) -> str:
     if not held["confirmed"]:
         return (
             f"Val data point to {names}, but the held-out test does not confirm it ({held_text}): treat it as "
-            f"unproven; the mismatch lives in {document['located']['where']}."
+            f"unproven; the mismatch lives in {document['located']['where']}.{_drag_caveat(document)}"
         )
     return (
         f"Missing: {names}; modelling it changed the {held_text}; what remains lives in "
-        f"{document['located_after']['where']}."
+        f"{document['located_after']['where']}.{_drag_caveat(document)}"
+    )
+
+
+def _drag_caveat(document: dict) -> str:
+    """Where a named drag is not the size free flight measures (diagnosis.simulated_drag)."""
+    for effect in document["effects"]:
+        check = effect.get("against_free_flight")
+        if check and not check["consistent"]:
+            low, high = check["simulated_range"]
+            return (
+                f" But the named drag is not the one free flight measures: at the fitted density the simulated body "
+                f"decelerates at k = {check['simulated_k_per_m']:.3f}/m ({low:.3f} to {high:.3f} over orientations), "
+                f"{check['ratio']:.1f}x the k = {check['measured_k_per_m']:.3f}/m (95% CI "
+                f"{check['measured_ci95'][0]:.3f} to {check['measured_ci95'][1]:.3f}) measured model-free on val: read "
+                "the fitted density as a knob fitted to the simulator's loss, not as a measurement of the air."
+            )
+    return ""
+
+
+def _against_free_flight(check: dict | None) -> str:
+    if check is None:
+        return ""
+    return (
+        f"; simulated drag k = {check['simulated_k_per_m']:.3f}/m, free flight (val) {check['measured_k_per_m']:.3f}/m "
+        f"(95% CI {check['measured_ci95'][0]:.3f} to {check['measured_ci95'][1]:.3f}): "
+        + ("consistent" if check["consistent"] else f"{check['ratio']:.1f}x, not consistent")
     )
 
 
@@ -218,7 +244,9 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "",
     ]
     lines += [
-        f"- `{e['name']}` ({e['mujoco']}): " + ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
+        f"- `{e['name']}` ({e['mujoco']}): "
+        + ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
+        + _against_free_flight(e.get("against_free_flight"))
         for e in document["effects"]
     ] or ["- none"]
     lines += [
