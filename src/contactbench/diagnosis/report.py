@@ -260,7 +260,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "## Candidates (val)",
         "",
         "| round | effect | improvement over its round's model | 95% CI | share of the base loss closed | "
-        "in free flight (later rounds) | dBIC | "
+        "in free flight (later rounds, measured effects) | dBIC | "
         "passes |",
         "|---|---|---|---|---|---|---|---|",
     ]
@@ -275,6 +275,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{c['closes_of_base_loss']:.3f} | {flying} | "
             f"{c['delta_bic']:.0f} | {'yes' if c['passes'] else 'no'}{' (chosen)' if c.get('chosen') else ''}"
             f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''}"
+            f"{' (significant in free flight)' if c['passes'] and c['ci95'][0] <= 0 else ''}"
             f"{' (margin: its gain in free flight)' if by_flight and not c.get('measured_model_free') else ''}"
             f"{' (ruled out in free flight)' if c.get('ruled_out_model_free') else ''}"
             f"{' (fitted below its resolution: not this physics)' if c.get('negligible') else ''}"
