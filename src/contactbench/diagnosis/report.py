@@ -111,13 +111,9 @@ def _drag_caveat(document: dict) -> str:
     for effect in document["effects"]:
         check = effect.get("against_free_flight")
         if check and not check["consistent"]:
-            low, high = check["simulated_range"]
             return (
-                f" But the named drag is not the one free flight measures: at the fitted density the simulated body "
-                f"decelerates at k = {check['simulated_k_per_m']:.3f}/m ({low:.3f} to {high:.3f} over orientations), "
-                f"{check['ratio']:.1f}x the k = {check['measured_k_per_m']:.3f}/m (95% CI "
-                f"{check['measured_ci95'][0]:.3f} to {check['measured_ci95'][1]:.3f}) measured model-free on val: read "
-                "the fitted density as a knob fitted to the simulator's loss, not as a measurement of the air."
+                f" But the named drag is not the one free flight measures: {_drag_comparison(check)}: read the fitted "
+                "density as a knob fitted to the simulator's loss, not as a measurement of the air."
             )
     return ""
 
@@ -125,10 +121,16 @@ def _drag_caveat(document: dict) -> str:
 def _against_free_flight(check: dict | None) -> str:
     if check is None:
         return ""
+    return f"; {_drag_comparison(check)}: " + ("consistent" if check["consistent"] else "not consistent")
+
+
+def _drag_comparison(check: dict) -> str:
+    low, high = check["simulated_range"]
+    measured_low, measured_high = check["measured_ci95"]
     return (
-        f"; simulated drag k = {check['simulated_k_per_m']:.3f}/m, free flight (val) {check['measured_k_per_m']:.3f}/m "
-        f"(95% CI {check['measured_ci95'][0]:.3f} to {check['measured_ci95'][1]:.3f}): "
-        + ("consistent" if check["consistent"] else f"{check['ratio']:.1f}x, not consistent")
+        f"at the fitted density the simulated body decelerates at k = {check['simulated_k_per_m']:.3f}/m ({low:.3f} "
+        f"to {high:.3f} over orientations), {check['ratio']:.1f}x the k = {check['measured_k_per_m']:.3f}/m (95% CI "
+        f"{measured_low:.3f} to {measured_high:.3f}) measured model-free on val"
     )
 
 

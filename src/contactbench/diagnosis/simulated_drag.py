@@ -27,21 +27,20 @@ def drag_per_metre(dataset: Recordings, parameters: ContactParameters, rng: np.r
     model = build_model(dataset, still)
     data = mujoco.MjData(model)
     masses = model.body_mass[1 : 1 + dataset.n_bodies]
+    rest = np.zeros(7 * dataset.n_bodies)
+    rest[0::7] = 10.0 * np.arange(dataset.n_bodies)  # apart from each other
+    rest[2::7] = 10.0  # clear of the floor
+    rest[3::7] = 1.0
     samples = []
     for body in range(dataset.n_bodies):
         for _ in range(PROBES):
-            qpos = np.zeros(7 * dataset.n_bodies)
-            qpos[0::7] = 10.0 * np.arange(dataset.n_bodies)  # apart from each other
-            qpos[2::7] = 10.0  # clear of the floor
-            qpos[3::7] = 1.0
-            qpos[7 * body + 3 : 7 * body + 7] = rotations.normalize(rng.normal(size=4))
+            data.qpos[:], data.qvel[:] = rest, 0.0
+            data.qpos[7 * body + 3 : 7 * body + 7] = rotations.normalize(rng.normal(size=4))
             direction = rng.normal(size=3)
-            qvel = np.zeros(6 * dataset.n_bodies)
-            qvel[6 * body : 6 * body + 3] = direction / np.linalg.norm(direction)
-            data.qpos[:], data.qvel[:] = qpos, qvel
+            direction /= np.linalg.norm(direction)
+            data.qvel[6 * body : 6 * body + 3] = direction
             mujoco.mj_forward(model, data)
-            force = data.qfrc_fluid[6 * body : 6 * body + 3]
-            samples.append(-float(force @ qvel[6 * body : 6 * body + 3]) / masses[body])
+            samples.append(-float(data.qfrc_fluid[6 * body : 6 * body + 3] @ direction) / masses[body])
     samples = np.array(samples)
     return {"k_per_m": float(samples.mean()), "range": [float(samples.min()), float(samples.max())]}
 
