@@ -194,8 +194,10 @@ def test_an_effect_fitted_below_its_resolution_is_not_named():
 def test_wind_that_gains_nothing_on_air_drag_does_not_pass():
     from types import SimpleNamespace
 
+    from contactbench.diagnosis import naming
+    from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.library import library
-    from contactbench.diagnosis.pipeline import Budget, Decision, Diagnosis
+    from contactbench.diagnosis.pipeline import Budget
 
     rng = np.random.default_rng(0)
     drag = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses
@@ -208,18 +210,20 @@ def test_wind_that_gains_nothing_on_air_drag_does_not_pass():
         ]
 
     same = fitted(drag * rng.uniform(0.97, 1.03, size=60))  # the extra parameters buy noise
-    Diagnosis.require_more_than_special_cases(steps, same)
+    naming.require_more_than_special_cases(steps, same)
     assert not same[1][0]["passes"] and same[1][0]["no_better_than"] == "air_drag"
     better = fitted(drag * 0.8)  # a wind the data show
-    Diagnosis.require_more_than_special_cases(steps, better)
+    naming.require_more_than_special_cases(steps, better)
     assert better[1][0]["passes"] and "no_better_than" not in better[1][0]
 
 
 def test_a_candidate_is_judged_against_the_model_without_it_refitted_from_its_values():
     from types import SimpleNamespace
 
+    from contactbench.diagnosis import naming
+    from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.library import Hypothesis, library
-    from contactbench.diagnosis.pipeline import Budget, Decision, Diagnosis
+    from contactbench.diagnosis.pipeline import Budget
 
     rng = np.random.default_rng(0)
     base_val = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses of the model of the round
@@ -237,11 +241,10 @@ def test_a_candidate_is_judged_against_the_model_without_it_refitted_from_its_va
             train_fit=SimpleNamespace(entries=1000, least_squares=lambda *_: (trial_values[:-1], control_train)),
             val_losses=lambda *_: control_val,
         )
-        steps.judge = lambda *args: Diagnosis.judge(steps, *args)
         record = {"round": 1, "train_loss": 0.9, "negligible": False}
-        record.update(Diagnosis.judge(steps, effect, record, candidate_val, base_val, 1.0, base_val))
+        record.update(naming.judge(steps, effect, record, candidate_val, base_val, 1.0, base_val))
         assert record["passes"]
-        Diagnosis.refit_control(steps, effect, record, current, trial, trial_values, candidate_val, 1.0, base_val)
+        naming.refit_control(steps, effect, record, current, trial, trial_values, candidate_val, 1.0, base_val)
         return record
 
     refit_alone = judged(0.905 * base_val, 0.905)  # the base refitted from the candidate's values gains as much
@@ -261,9 +264,9 @@ def test_the_conclusive_budgets_fit_every_library_effect_in_full(budget, tmp_pat
 
 
 def test_a_later_effect_must_close_the_later_margin_of_its_rounds_model():
+    from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.free_flight import MEASURED
     from contactbench.diagnosis.library import library
-    from contactbench.diagnosis.pipeline import Decision
 
     decision, effects = Decision(), library(0.1, gravity_scale=0.978, gravity=MEASURED)
     drag = effects["air_drag"]
@@ -278,9 +281,9 @@ def test_a_later_effect_must_close_the_later_margin_of_its_rounds_model():
 
 
 def test_free_flight_decides_for_the_effects_it_can_measure_and_rule_out():
+    from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED, RULED_OUT
     from contactbench.diagnosis.library import library
-    from contactbench.diagnosis.pipeline import Decision
 
     decision = Decision()
     for evidence, first, later in ((MEASURED, True, True), (RULED_OUT, False, False), (INCONCLUSIVE, True, False)):
@@ -294,9 +297,9 @@ def test_free_flight_decides_for_the_effects_it_can_measure_and_rule_out():
 
 
 def test_an_effect_free_flight_measures_may_show_its_significance_there():
+    from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED
     from contactbench.diagnosis.library import library
-    from contactbench.diagnosis.pipeline import Decision
 
     # held out 14's drag beside a floor tilt: the whole val +1.6% (CI -5.9% to +8.0%), free flight +29% (CI 14-74%)
     flying = {"improvement": 0.29, "ci95": [0.14, 0.74], "removed_per_segment": 0.077}
@@ -311,7 +314,7 @@ def test_an_effect_free_flight_measures_may_show_its_significance_there():
 
 
 def test_a_candidate_that_misses_significance_may_still_rival_the_best():
-    from contactbench.diagnosis.pipeline import Decision
+    from contactbench.diagnosis.decision import Decision
 
     # a cube's true rolling friction in held out 13: 5.1% on val (CI from -1.7%), a lower BIC than the inertia named
     rolling = {"val_improvement": 0.051, "ci95": [-0.017, 0.115], "delta_bic": -6159.0, "negligible": False}
@@ -328,8 +331,8 @@ def test_a_candidate_that_misses_significance_may_still_rival_the_best():
 
 
 def test_a_later_effect_below_the_later_margin_needs_its_gain_in_free_flight():
+    from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.library import library
-    from contactbench.diagnosis.pipeline import Decision
 
     decision, wind = Decision(), library(0.1)["wind"]
     flying = {"improvement": 0.9, "ci95": [0.85, 0.95], "removed_per_segment": 0.12}

@@ -82,7 +82,7 @@ def test_the_simulated_drag_is_mujocos_box_drag_and_is_compared_with_the_measure
 
     # the equivalent box of a cube's inertia: side^2 = 6 I / m; along a face normal F = rho side^2 v^2 / 2, and
     # along any other direction u the drag on it is that times sum |u_i|^3, between 1/sqrt(3) and 1
-    mass, inertia = build_model(real, base).body_mass[1], real.mass_properties(0)[1][0, 0]
+    mass, inertia = build_model(real, base).body_mass[1], real.inertial(0)[1][0, 0]
     along_a_face = 1.2 * 6 * inertia / mass / (2 * mass)
     still = k(1.2)
     assert along_a_face / np.sqrt(3) - 1e-9 <= still["range"][0] < still["k_per_m"] < still["range"][1] <= along_a_face

@@ -194,7 +194,7 @@ def test_spin_about_world_axis_with_offset_centre_of_mass():
     dt, n_steps = 0.002, 250
     mesh = box([0.03, -0.01, 0.02], [0.13, 0.05, 0.08])  # CoM (0.08, 0.02, 0.05), far from the mesh origin
     data = scene([mesh], inertia_diagonals=[(5e-4,) * 3], dt=dt, gravity=(0.0, 0.0, 0.0))
-    com_body, _ = data.mass_properties(0)
+    com_body, _ = data.inertial(0)
     q0 = rotations.from_axis_angle(np.array([0.3, -1.0, 0.4]), 1.1)
     omega = 2.0 * np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
     origin = np.array([0.5, -0.3, 1.0])
@@ -234,7 +234,7 @@ def test_qpos_is_the_recordings_pose_for_an_offset_mesh(inertia_diagonal):
     mujoco.mj_kinematics(model, mujoco_data)
     np.testing.assert_allclose(mujoco_data.xpos[1], pose[:3], atol=1e-12)
     assert rotations.angle_between(mujoco_data.xquat[1], pose[3:]) < 1e-9
-    com, inertia = data.mass_properties(0)
+    com, inertia = data.inertial(0)
     assert np.linalg.norm(com) > 0.05
     np.testing.assert_allclose(mujoco_data.xipos[1], pose[:3] + rotations.rotate(pose[3:], com), atol=1e-12)
     principal_axes = rotations.to_matrix(model.body_iquat[1])

@@ -155,8 +155,9 @@ class Scene:
         """Per-body width w_k: the largest extent of the mesh's axis-aligned bounding box (m)."""
         return np.array([self.body_mesh(k).width for k in range(self.n_bodies)])
 
-    def mass_properties(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Body k's centre of mass in the mesh frame and its inertia tensor about the CoM (mesh-frame axes)."""
+    def inertial(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Body k's centre of mass in the mesh frame and its inertia tensor about the CoM (mesh-frame axes): its mesh's
+        uniform solid (Mesh.mass_properties), with the recorded inertia diagonal where the recordings give one."""
         body = self.bodies[k]
         com, inertia = self.body_mesh(k).mass_properties(body.mass)
         if body.inertia_diagonal is not None:

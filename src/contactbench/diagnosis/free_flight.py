@@ -65,7 +65,7 @@ def centre_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.nda
     poses = np.nan_to_num(split.poses)
     centres = np.stack(
         [
-            poses[:, :, k, :3] + rotations.rotate(poses[:, :, k, 3:], dataset.mass_properties(k)[0])
+            poses[:, :, k, :3] + rotations.rotate(poses[:, :, k, 3:], dataset.inertial(k)[0])
             for k in range(dataset.n_bodies)
         ],
         axis=2,

@@ -19,13 +19,24 @@ segments, not full rollouts.
 
 from __future__ import annotations
 
+import logging
+import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from contactbench.diagnosis.decision import bootstrap_ratio
+from contactbench.diagnosis.fitting import ResidualFit
+from contactbench.diagnosis.library import Hypothesis
 from contactbench.diagnosis.phases import FREE, IMPACT, PHASES, label_phases, recorded_velocities
 from contactbench.diagnosis.segments import UNSTABLE_RESIDUAL, Segments
 from contactbench.recordings import Recordings, Split
+
+if TYPE_CHECKING:
+    from contactbench.diagnosis.pipeline import Diagnosis
+
+log = logging.getLogger(__name__)
 
 FEATURES = (
     "1",
@@ -188,3 +199,100 @@ def corrected(residuals: np.ndarray, correction: Correction, dictionary: Diction
     """Residuals with the correction applied; blown-up entries stay as they were."""
     out = residuals + correction.displacement(dictionary)
     return np.where(np.abs(residuals) >= UNSTABLE_RESIDUAL, residuals, out)
+
+
+# ---------------------------------------------------------------- the step
+
+
+def explain(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray) -> dict:
+    """The sparse phase-gated correction (diagnosis.open_world) fitted on train, judged on val like an effect,
+    and checked once on the test split's segments."""
+    started = time.perf_counter()
+    valid = steps.train_split.valid_mask()
+    origin = steps.train_split.poses[..., :2][valid].reshape(-1, 2).mean(axis=0)
+    train = _inputs(steps, steps.train_fit, steps.train_split, hypothesis, values, origin)
+    correction = fit_correction(
+        train["dictionary"], train["residuals"], steps.train_fit.scale, steps.budget.open_world_terms, train["usable"]
+    )
+    record: dict = {"terms": correction.described(), "passes": False}
+    if correction.terms:
+        val = _inputs(steps, steps.val_fit, steps.val_split, hypothesis, values, origin)
+        before, after = _losses(steps.val_fit, val, correction, steps.val_split.n_trajectories)
+        improvement, ci = bootstrap_ratio(before, after, steps.budget.bootstrap, steps.rng, steps.decision.confidence)
+        n_residuals = 6 * steps.train_fit.entries
+        train_before, train_after = (
+            float(losses.mean())
+            for losses in _losses(steps.train_fit, train, correction, steps.train_split.n_trajectories)
+        )
+        delta_bic = n_residuals * np.log(train_after / train_before) + len(correction.terms) * np.log(n_residuals)
+        margin = steps.decision.margin
+        record.update(
+            {
+                "val_improvement": improvement,
+                "ci95": ci,
+                "delta_bic": float(delta_bic),
+                "margin": margin,
+                "passes": bool(ci[0] > 0 and improvement >= margin and delta_bic < 0),
+                "located": _location(steps, val, correction),
+            }
+        )
+        if record["passes"]:
+            test_split, test_fit = steps.test_segments()
+            test = _inputs(steps, test_fit, test_split, hypothesis, values, origin)
+            before, after = _losses(test_fit, test, correction, test_split.n_trajectories)
+            held, held_ci = bootstrap_ratio(before, after, steps.budget.bootstrap, steps.rng)
+            record["heldout"] = {
+                "split": "test",
+                "what": "short-horizon segments (the correction is not a MuJoCo model, so no full rollouts)",
+                "n_trajectories": int(test_split.n_trajectories),
+                "improvement": held,
+                "ci95": held_ci,
+                "confirmed": held_ci[0] > 0,
+            }
+    log.info(
+        "open world: %d terms, %s",
+        len(correction.terms),
+        "passes" if record["passes"] else "does not pass",
+    )
+    steps.timings["open_world_s"] = time.perf_counter() - started
+    return record
+
+
+def _inputs(steps: Diagnosis, fit: ResidualFit, split, hypothesis: Hypothesis, values: np.ndarray, origin) -> dict:
+    residuals = fit.residuals(hypothesis, values[None])[0]
+    features, phases = recorded_states(steps.dataset, split, fit.simulator.segments, origin)
+    return {
+        "residuals": residuals,
+        "usable": (np.abs(residuals) < UNSTABLE_RESIDUAL).all(axis=(1, 2, 3)),
+        "dictionary": integrate(features, phases, steps.dataset.dt, steps.dataset.widths()),
+    }
+
+
+def _location(steps: Diagnosis, inputs: dict, correction) -> dict:
+    """Where the correction closes the val loss: the share its terms of each phase close alone, and the share of
+    the closing per output component."""
+    residuals = inputs["residuals"]
+    usable = inputs["usable"][:, None, None, None]
+
+    def gain(part) -> np.ndarray:  # [M, L, K, 6] loss closed by a correction
+        after = corrected(residuals, part, inputs["dictionary"])
+        return np.where(usable, steps.val_fit.robust(residuals) - steps.val_fit.robust(after), 0.0)
+
+    by_phase = np.array([gain(correction.restricted(p)).sum() for p in range(len(PHASES))])
+    by_output = gain(correction).sum(axis=(0, 1, 2))
+    return {
+        "phase_shares": {p: float(by_phase[i] / max(by_phase.sum(), 1e-300)) for i, p in enumerate(PHASES)},
+        "output_shares": {o: float(by_output[i] / max(by_output.sum(), 1e-300)) for i, o in enumerate(OUTPUTS)},
+        "phase": PHASES[int(np.argmax(by_phase))],
+        "output": OUTPUTS[int(np.argmax(by_output))],
+    }
+
+
+def _losses(fit: ResidualFit, inputs: dict, correction, n_trajectories: int):
+    """Per-trajectory robust loss of the base residuals and of the corrected ones."""
+    residuals = inputs["residuals"]
+    after = corrected(residuals, correction, inputs["dictionary"])
+    return (
+        fit.simulator.trajectory_losses(fit.robust(residuals), n_trajectories),
+        fit.simulator.trajectory_losses(fit.robust(after), n_trajectories),
+    )

@@ -121,7 +121,7 @@ def inertials(dataset: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.nd
     """Every body's centre of mass [K, 3] (mesh frame) and inertia tensor about it [K, 3, 3] in the scene with
     `effects` (an offset centre of mass, scaled inertias)."""
     root_scale = np.sqrt(np.array(effects.inertia_scale))
-    properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
+    properties = [dataset.inertial(k) for k in range(dataset.n_bodies)]
     coms = np.stack([com + np.array(effects.com_offset) for com, _ in properties])
     return coms, np.stack([root_scale[:, None] * inertia * root_scale[None, :] for _, inertia in properties])
 

@@ -42,7 +42,7 @@ def inertia_per_mass(dataset: Recordings, scene: MeshScene) -> np.ndarray:
     """Every body's inertia tensor per unit mass about its mesh vertices' centroid, mesh-frame axes [K, 3, 3]."""
     tensors = []
     for k, nodes in enumerate(scene.body_slices()):
-        com, inertia = dataset.mass_properties(k)
+        com, inertia = dataset.inertial(k)
         offset = scene.rest_vertices[nodes].mean(axis=0) - com
         mass = dataset.bodies[k].mass
         tensors.append(inertia / mass + offset @ offset * np.eye(3) - np.outer(offset, offset))

@@ -54,7 +54,7 @@ def single_body_scene(dataset: Scene) -> SingleBodyScene:
             f"the hybrid model supports single-body datasets; {dataset.name} has {dataset.n_bodies} bodies"
         )
     mesh = dataset.body_mesh(0)
-    com, inertia = dataset.mass_properties(0)
+    com, inertia = dataset.inertial(0)
     body = RigidBody(
         mass=dataset.bodies[0].mass,
         inertia=np.asarray(inertia, dtype=np.float64),

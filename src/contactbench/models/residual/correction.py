@@ -45,7 +45,7 @@ class Bodies:
 
     @classmethod
     def of(cls, dataset: Scene) -> Bodies:
-        properties = [dataset.mass_properties(k) for k in range(dataset.n_bodies)]
+        properties = [dataset.inertial(k) for k in range(dataset.n_bodies)]
         return cls(
             vertices=tuple(np.asarray(dataset.body_mesh(k).vertices, dtype=float) for k in range(dataset.n_bodies)),
             masses=np.array([body.mass for body in dataset.bodies], dtype=float),
