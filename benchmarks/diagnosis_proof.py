@@ -41,6 +41,7 @@ from contactbench import atomic, runs
 from contactbench.generation.effects import OUTSIDE_LIBRARY
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.scenes import SceneSpec
+from contactbench.metrics import position_error
 from contactbench.recordings import read_recordings, write_recordings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -126,10 +127,8 @@ def generate(case: dict, data_dir: Path, with_effect: bool) -> Path:
 
 def size(with_effect: Path, without: Path) -> float:
     """Mean position change of the bodies' centres over the test tosses, in object widths."""
-    moved, still = (read_recordings(path) for path in (with_effect, without))
-    a, b = moved.split("test").poses[..., :3], still.split("test").poses[..., :3]
-    change = np.linalg.norm(a - b, axis=-1) / moved.widths()
-    return float(np.nanmean(change))
+    moved, still = (read_recordings(path, ["test"]) for path in (with_effect, without))
+    return float(np.nanmean(position_error(moved.split("test").poses, still.split("test").poses, moved.widths())))
 
 
 def blind_copy(case: dict, data_dir: Path) -> tuple[Path, float]:
@@ -156,12 +155,14 @@ def unexplained_phase(document: dict) -> str | None:
 
 
 def judge(case: dict, document: dict) -> dict:
-    """Right, wrong name, false alarm, wrong place, unconfirmed or miss, against the hidden truth."""
-    named = [e["name"] for e in document["effects"]]
+    """Right, wrong name, false alarm, wrong place, unconfirmed or miss, against the hidden truth. A name counts only
+    where the verdict is `effect` (confirmed on test); an unconfirmed candidate is no finding, right or wrong."""
     verdict, truth = document["verdict"], case["truth"]
+    candidates = [e["name"] for e in document["effects"]]
+    named = candidates if verdict == "effect" else []
     located = unexplained_phase(document)
     if truth in NULL_TRUTHS:
-        outcome = "right" if verdict == "none" else "false alarm"
+        outcome = {"none": "right", "unconfirmed": "unconfirmed"}.get(verdict, "false alarm")
     elif truth == "outside":
         if named:
             outcome = "wrong name"
@@ -171,11 +172,11 @@ def judge(case: dict, document: dict) -> dict:
             outcome = "miss"
     elif any(name not in truth for name in named):
         outcome = "wrong name"
-    elif sorted(named) == sorted(truth):
-        outcome = "right" if document["heldout"]["confirmed"] else "unconfirmed"
+    elif named:
+        outcome = "right" if sorted(named) == sorted(truth) else "miss"  # only one of two effects
     else:
-        outcome = "miss"  # none, unexplained, or only some of two effects
-    return {"named": named, "verdict": verdict, "located": located, "outcome": outcome}
+        outcome = "unconfirmed" if sorted(candidates) == sorted(truth) else "miss"
+    return {"named": named, "candidates": candidates, "verdict": verdict, "located": located, "outcome": outcome}
 
 
 def diagnose(path: Path, out_dir: Path, budget: str) -> dict:
@@ -203,7 +204,7 @@ def main() -> None:
         case_started = time.perf_counter()
         document = diagnose(path, out / path.name, args.budget)
         held = document["heldout"]
-        named = bool(document["effects"])
+        named = bool(document["effects"])  # on val, confirmed or not
         row = {
             **{k: v for k, v in listed.items() if k != "index"},
             "name": case_name(listed),
@@ -274,8 +275,8 @@ def summarise(set_name: str, rows: list[dict], seconds: float) -> dict:
         matrix[r["label"]][_predicted_label(r)] += 1
     closed = [r["excess_closed"] for r in library_rows if r["outcome"] == "right" and r["excess_closed"] is not None]
     wrong = [r["name"] for r in rows if r["outcome"] == "wrong name"]
-    false_alarms = [r["name"] for r in null_rows if r["outcome"] != "right"]
-    worse = [r["name"] for r in rows if r["named"] and r["heldout_improvement"] < 0]
+    false_alarms = [r["name"] for r in null_rows if r["outcome"] == "false alarm"]
+    worse = [r["name"] for r in rows if r["named"] and r["heldout_improvement"] <= 0]
     lines = [
         f"# Diagnosis proof, set {set_name} ({len(rows)} blind datasets, {seconds / 60:.1f} min, "
         f"{max((r['seconds'] for r in rows), default=0):.0f} s for the slowest)",
@@ -307,6 +308,8 @@ def summarise(set_name: str, rows: list[dict], seconds: float) -> dict:
     ]
     for r in rows:
         verdict = ", ".join(r["named"]) or r["verdict"]
+        if r["candidates"] and not r["named"]:
+            verdict += f" (candidate {', '.join(r['candidates'])})"
         if r["verdict"] == "unexplained":
             verdict += f" ({r['located']})"
         lines.append(

@@ -36,6 +36,7 @@ import yaml
 from contactbench import rotations
 from contactbench.generation.solids import SOLID_NAMES, WIDTH, convex_mesh, solid
 from contactbench.meshes import Mesh
+from contactbench.metrics import position_error
 from contactbench.recordings import FORMAT, VERSION, Recordings, Split, read_meta, read_recordings, write_recordings
 
 DT = 0.00676  # s between frames: the benchmark's generated datasets (frictioncubes meta.json)
@@ -580,8 +581,8 @@ def size(case: dict, out_dir: Path) -> float:
     """Mean displacement of the body centre by the effect, in object widths, over every frame of every test toss."""
     with_effect = read_recordings(generate_case(case, out_dir), splits=["test"])
     without = read_recordings(generate_case(case, out_dir, with_effect=False), splits=["test"])
-    shift = with_effect.split("test").poses[..., :3] - without.split("test").poses[..., :3]
-    return float(np.linalg.norm(shift, axis=-1).mean() / with_effect.widths()[0])
+    moved = position_error(with_effect.split("test").poses, without.split("test").poses, with_effect.widths())
+    return float(moved.mean())
 
 
 # ---------------------------------------------------------------- proof sets

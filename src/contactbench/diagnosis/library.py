@@ -10,7 +10,7 @@ import numpy as np
 from contactbench.diagnosis.free_flight import INCONCLUSIVE, MARGIN, MEASURED, RULED_OUT
 from contactbench.errors import ContactbenchError
 from contactbench.generation.effects import EFFECT_NAMES
-from contactbench.sim.mujoco_scene import ContactParameters, SceneEffects
+from contactbench.sim.mujoco_scene import MUJOCO_DEFAULT_SOLIMP, ContactParameters, SceneEffects
 
 
 @dataclass(frozen=True)
@@ -80,14 +80,21 @@ GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
 
 
 def library(
-    width: float, gravity_scale: float = 1.0, gravity: str = INCONCLUSIVE, drag: str = INCONCLUSIVE
+    width: float,
+    gravity_scale: float = 1.0,
+    gravity: str = INCONCLUSIVE,
+    drag: str = INCONCLUSIVE,
+    contact: dict[str, str] | None = None,
 ) -> dict[str, Effect]:
     """The candidate effects for bodies of the given width (m); their names are generation.effects.EFFECT_NAMES.
     `gravity_scale`: where the gravity_scale fit starts, the train split's free-flight measurement (1: off);
     `gravity` / `drag`: what the free-flight check says of an apparent gravity / a drag on val (diagnosis.free_flight:
     MEASURED, RULED_OUT, INCONCLUSIVE). A drag there is air_drag's or wind's (drag in moving air): both share its
     evidence, and wind must still beat air_drag (Diagnosis.require_more_than_special_cases). Ruled out, they gain on
-    the simulator's loss only through contact (nulls: drag and wind closed 3.1% and 3.5% of the base loss)."""
+    the simulator's loss only through contact (nulls: drag and wind closed 3.1% and 3.5% of the base loss).
+    `contact`: what the model-free contact signatures say of anisotropic_friction, torsional_friction and
+    rolling_friction (diagnosis.contact_signatures.measure's `evidence`; absent: INCONCLUSIVE)."""
+    contact = contact or {}
     reach = 0.3 * width
     gravity_start = float(np.clip(gravity_scale, *GRAVITY_SCALE_BOUNDS))
     effects = [
@@ -117,18 +124,21 @@ def library(
             (Parameter("rolling_friction", 0.0, 0.05, 0.0, resolution=LENGTH_RESOLUTION),),
             "rolling resistance",
             "condim 6, rolling friction",
+            evidence=contact.get("rolling_friction", INCONCLUSIVE),
         ),
         Effect(
             "torsional_friction",
             (Parameter("torsional_friction", 0.0, 0.05, 0.0, resolution=LENGTH_RESOLUTION),),
             "torsional (spin) friction",
             "condim 4, torsional friction",
+            evidence=contact.get("torsional_friction", INCONCLUSIVE),
         ),
         Effect(
             "anisotropic_friction",
             (Parameter("friction_anisotropy", -2.0, 2.0, 0.0, log=True, resolution=RATIO_RESOLUTION),),
             "floor friction that differs between directions",
             "contact pair friction, x vs y tangent",
+            evidence=contact.get("anisotropic_friction", INCONCLUSIVE),
         ),
         Effect(
             "com_offset",
@@ -181,12 +191,25 @@ def library(
 
 
 def base_parameters(n_bodies: int) -> tuple[Parameter, ...]:
-    """Table 2c: object friction per body, floor stiffness (log), floor damping. The floor's own friction stays 0,
-    so a floor contact's friction (MuJoCo takes the larger of the two) is the object's."""
+    """Table 2c: object friction per body, floor stiffness (log), floor damping; and the floor contacts' impedance
+    (MuJoCo's solimp dmin, dmax, width, starting at MuJoCo's defaults), which shapes an impact beyond stiffness and
+    damping: contact model-form error left in the base is what spurious candidates ride on (on a null dodecahedron
+    it closed 4.7% of the base's val loss, CI 2.8-6.4%, and 8.5% of its test full-rollout error; on null cubes and
+    tetrahedra nothing). The floor's own friction stays 0, so a floor contact's friction (MuJoCo takes the larger of
+    the two) is the object's."""
     return (
         *(Parameter(f"object_friction_{k}", 0.0, 1.0, 0.5) for k in range(n_bodies)),
         Parameter("floor_stiffness", float(np.log(1e2)), float(np.log(1e4)), float(np.log(1e3)), log=True),
         Parameter("floor_damping", 0.0, 1e3, 50.0),
+        Parameter("floor_impedance_min", 0.3, 0.99, MUJOCO_DEFAULT_SOLIMP[0]),
+        Parameter("floor_impedance_max", 0.5, 0.999, MUJOCO_DEFAULT_SOLIMP[1]),
+        Parameter(
+            "floor_impedance_width",
+            float(np.log(1e-4)),
+            float(np.log(0.05)),
+            float(np.log(MUJOCO_DEFAULT_SOLIMP[2])),
+            log=True,
+        ),
     )
 
 
@@ -263,6 +286,7 @@ class Hypothesis:
             floor_friction=0.0,
             floor_stiffness=base["floor_stiffness"],
             floor_damping=base["floor_damping"],
+            floor_solimp=tuple(base[f"floor_impedance_{name}"] for name in ("min", "max", "width")),
             effects=SceneEffects(**scene),
             **extra,
         )

@@ -84,11 +84,11 @@ def _verdict_sentence(document: dict) -> str:
             "which is missing, so none is named."
         )
     if document["verdict"] == "unexplained":
-        return _unexplained_sentence(document["open_world"])
+        return _unexplained_sentence(document) + _unconfirmed_note(document)
     if document["verdict"] == "none":
         return (
             f"No candidate effect improved the fit significantly and by the margin; the remaining mismatch lives in "
-            f"{where} (held-out position error {held['base']['pos_err']:.4f} widths)."
+            f"{where} (held-out position error {held['base']['pos_err']:.4f} widths).{_predictor_note(document)}"
         )
     names = " and ".join(f"{e['name']} ({e['physics']})" for e in document["effects"])
     held_text = (
@@ -99,6 +99,7 @@ def _verdict_sentence(document: dict) -> str:
         return (
             f"Val data point to {names}, but the held-out test does not confirm it ({held_text}): treat it as "
             f"unproven; the mismatch lives in {document['located']['where']}.{_drag_caveat(document)}"
+            f"{_predictor_note(document)}"
         )
     return (
         f"Missing: {names}; modelling it changed the {held_text}; what remains lives in "
@@ -135,17 +136,41 @@ def _drag_comparison(check: dict) -> str:
 
 
 def _short_text(held: dict) -> str:
-    confirmation = held.get("confirmation")
-    if confirmation is None:
+    short = held.get("short_horizon")
+    if short is None:
         return ""
-    short, level = confirmation["short_horizon"], confirmation["confidence"]
     return (
-        f"; short-horizon loss on test {short['improvement']:.1%} lower ({level:.1%} CI {short['ci'][0]:.1%} to "
-        f"{short['ci'][1]:.1%})"
+        f"; short-horizon loss on test {short['improvement']:.1%} lower (95% CI {short['ci'][0]:.1%} to "
+        f"{short['ci'][1]:.1%}; reported, not proof)"
     )
 
 
-def _unexplained_sentence(found: dict) -> str:
+def _predictor_note(document: dict) -> str:
+    found = document.get("predictable")
+    return f" {found['sentence']}" if found else ""
+
+
+def _unconfirmed_note(document: dict) -> str:
+    if not document["effects"]:
+        return ""
+    held = document["heldout"]
+    names = " and ".join(e["name"] for e in document["effects"])
+    return (
+        f" Val data pointed to {names}, an unconfirmed candidate: its held-out full rollouts changed by "
+        f"{held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%})."
+    )
+
+
+def _unexplained_sentence(document: dict) -> str:
+    found = document["unexplained"]
+    if found["by"] == "predictor":
+        return document["predictable"]["sentence"]
+    if found["by"] == "contact_signatures":
+        signatures = document["contact_signatures"]["signatures"]
+        return "Something the library does not list is missing, measured model-free in contact: " + " ".join(
+            signatures[name]["sentence"] for name in found["depends_on"]
+        )
+    found = document["open_world"]
     located, held = found["located"], found["heldout"]
     phase_share = located["phase_shares"][located["phase"]]
     return (
@@ -185,6 +210,33 @@ def _refit_control_note(candidate: dict) -> str:
 def _special_case_note(candidate: dict) -> str:
     special = candidate.get("no_better_than")
     return f" (no better than its special case {special})" if special else ""
+
+
+def _contact_lines(found: dict | None) -> list[str]:
+    if not found:
+        return []
+    lines = ["## Model-free in contact (diagnosis.contact_signatures)", ""]
+    lines += [
+        f"- {name} ({signature['speaks_to']}): **{signature['evidence']}**. {signature['sentence']}"
+        for name, signature in found["signatures"].items()
+    ]
+    return [*lines, ""]
+
+
+def _predictor_lines(found: dict | None) -> list[str]:
+    if not found:
+        return []
+    shares = ", ".join(f"{phase} {share:.0%}" for phase, share in found["phase_shares"].items())
+    dependence = ", ".join(f"{group} {share:.0%}" for group, share in found["dependence"].items())
+    return [
+        "## Is what the base misses predictable? (a flexible correction, diagnosis.predictable)",
+        "",
+        found["sentence"],
+        "",
+        f"Where it closes the val loss: {shares}. What its gain depends on (share lost when permuted; `constant`: "
+        f"share kept with every group permuted): {dependence}.",
+        "",
+    ]
 
 
 def _open_world_lines(found: dict | None) -> list[str]:
@@ -230,6 +282,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         document["free_flight"]["sentence"],
         "",
         *_free_flight_table(document["free_flight"]),
+        *_contact_lines(document.get("contact_signatures")),
         "## Held-out (test, full rollouts from the context frames)",
         "",
         "| model | position error (widths) | rotation error (rad) |",
@@ -238,9 +291,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         f"| augmented | {held['augmented']['pos_err']:.4f} | {held['augmented']['rot_err_rad']:.4f} |",
         "",
         f"Improvement {held['improvement']:.1%} (95% CI {held['ci95'][0]:.1%} to {held['ci95'][1]:.1%}, paired "
-        f"bootstrap over {held['n_trajectories']} test trajectories){_short_text(held)}. Confirmed where the "
-        "short-horizon or the full-rollout improvement is above zero at 97.5% and the full rollouts do not get "
-        f"worse: {'yes' if held['confirmed'] else 'no'}.",
+        f"bootstrap over {held['n_trajectories']} test trajectories){_short_text(held)}. A name is confirmed where "
+        f"the full rollouts improve (95% interval above zero): {'yes' if held['confirmed'] else 'no'}.",
         "",
         "## Effects",
         "",
@@ -284,6 +336,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{_special_case_note(c)}{_refit_control_note(c)} |"
         )
     lines += ["", *_open_world_lines(document.get("open_world"))]
+    lines += _predictor_lines(document.get("predictable"))
     located = document["located"]
     lines += [
         "",

@@ -82,12 +82,15 @@ class ContactParameters:
     floor_friction: float
     floor_stiffness: float | None  # MuJoCo direct solref "-stiffness -damping"; None (both) = default solref
     floor_damping: float | None
+    # The floor contacts' impedance (solimp dmin, dmax, width; midpoint and power stay MuJoCo's): how the constraint's
+    # hardness grows with penetration, which shapes an impact beyond stiffness and damping. None: MuJoCo's default.
+    floor_solimp: tuple[float, float, float] | None = None
     torsional_friction: float = 0.0  # non-zero turns on condim 4 (all contacts)
     rolling_friction: float = 0.0  # non-zero turns on condim 6 (all contacts)
     effects: SceneEffects = NO_EFFECTS
 
     def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction",), skip=("effects",))
+        freeze_numbers(self, vectors=("object_friction", "floor_solimp"), skip=("effects",))
         if (self.floor_stiffness is None) != (self.floor_damping is None):
             raise ContactbenchError("floor_stiffness and floor_damping are given together or not at all")
         frictions = self.object_friction + (self.floor_friction, self.torsional_friction, self.rolling_friction)
@@ -95,6 +98,10 @@ class ContactParameters:
             raise ContactbenchError(f"friction coefficients must be finite and non-negative, got {self}")
         if self.floor_stiffness is not None and not (self.floor_stiffness > 0 and self.floor_damping >= 0):
             raise ContactbenchError(f"floor stiffness must be positive and damping non-negative, got {self}")
+        if self.floor_solimp is not None and not (
+            0 < self.floor_solimp[0] < 1 and 0 < self.floor_solimp[1] < 1 and self.floor_solimp[2] > 0
+        ):
+            raise ContactbenchError(f"floor solimp dmin and dmax must lie in (0, 1) and its width be > 0, got {self}")
 
     @classmethod
     def mujoco_default(cls, n_bodies: int) -> ContactParameters:
@@ -109,6 +116,12 @@ class ContactParameters:
         if self.rolling_friction > 0:
             return 6
         return 4 if self.torsional_friction > 0 else 3
+
+    @property
+    def floor_impedance(self) -> tuple[float, ...]:
+        if self.floor_solimp is None:
+            return MUJOCO_DEFAULT_SOLIMP
+        return (*self.floor_solimp, *MUJOCO_DEFAULT_SOLIMP[3:])
 
     @property
     def floor_solref(self) -> tuple[float, float]:
@@ -165,7 +178,7 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
         )
         pairs.append(
             f'<pair geom1="floor" geom2="geom{k}" condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
-            f'solimp="{_numbers(MUJOCO_DEFAULT_SOLIMP)}" '
+            f'solimp="{_numbers(params.floor_impedance)}" '
             f'friction="{_numbers((along_y, along_x, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
         )
     fluid = f' density="{effects.fluid_density!r}" wind="{_numbers(effects.wind)}"' if effects.fluid_density > 0 else ""
@@ -182,6 +195,7 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
             f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z + effects.floor_offset!r}" '
             f'quat="{_numbers(rotations.tilt(*effects.floor_tilt))}" contype="0" conaffinity="0" '
             f'condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
+            f'solimp="{_numbers(params.floor_impedance)}" '
             f'friction="{_numbers((params.floor_friction,) + spin_roll)}"/>',
             *bodies,
             "</worldbody>",
