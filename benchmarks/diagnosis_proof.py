@@ -28,11 +28,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import json
 import time
 from pathlib import Path
 
+import independent_generator  # beside this script (run as python benchmarks/diagnosis_proof.py)
 import numpy as np
 import yaml
 from hydra import compose, initialize_config_dir
@@ -95,17 +95,10 @@ def case_name(case: dict) -> str:
     return f"{case['shape']}_seed{case['seed']}_{label}{strength}" + ("" if case["velocities"] else "_novel")
 
 
-def _independent_generator():
-    spec = importlib.util.spec_from_file_location("independent_generator", SET_DIR.parent / "independent_generator.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def generate(case: dict, data_dir: Path, with_effect: bool) -> Path:
     """The case's dataset with its velocities (kept if there), or its null twin (the same seed, the effect off)."""
     if case["generator"] == "independent":
-        return _independent_generator().generate_case(
+        return independent_generator.generate_case(
             {**case, "velocities": True}, data_dir / "independent", with_effect=with_effect
         )
     effects = tuple(case["effects"]) if with_effect else ()
@@ -220,6 +213,7 @@ def main() -> None:
             "seconds": round(time.perf_counter() - case_started, 1),
         }
         rows.append(row)
+        atomic.write_json(out / "proof.json", {"cases": rows})  # so far: a stopped run keeps what it diagnosed
         print(
             f"{row['name']:52s} size {measured:.3f} -> {row['verdict']} {row['named'] or ''} {row['located'] or ''} "
             f"{row['outcome'].upper()}  base {row['base_pos_err']:.4f} aug {row['augmented_pos_err']:.4f}  "
