@@ -92,3 +92,25 @@ def test_the_simulated_drag_is_mujocos_box_drag_and_is_compared_with_the_measure
     assert simulated_drag.against_free_flight(still, measured)["consistent"]
     strong = simulated_drag.against_free_flight(k(6.94), measured)
     assert not strong["consistent"] and strong["ratio"] > 2
+
+
+def test_velocities_of_another_convention_are_measured_and_aligned_and_the_engines_own_are_left_alone(tmp_path):
+    # An engine stepping several times a frame stores v_t = (x_t - x_{t-1}) / dt + c g dt in free flight; the one-step
+    # semi-implicit convention the simulators restart from has c = 0.
+    from contactbench.diagnosis import velocities
+
+    null = read_recordings(generate_dataset(CUBE, tmp_path / "null", split_sizes=SIZES, workers=1, progress=False))
+    null = null.for_models(list(null.splits))
+    plain = velocities.check(null, np.random.default_rng(0), draws=200)
+    assert not plain["aligned"] and velocities.aligned(null, plain) is null
+    lead = np.array([0.0, 0.0, -3 / 7 * 9.8 * null.dt, 0.0, 0.0, 0.0])
+    shifted = dataclasses.replace(
+        null,
+        splits={name: dataclasses.replace(s, velocities=s.velocities + lead) for name, s in null.splits.items()},
+    )
+    found = velocities.check(shifted, np.random.default_rng(0), draws=200)
+    assert found["aligned"] and found["offset"] == pytest.approx(lead[:3], abs=1e-9)
+    restored = velocities.aligned(shifted, found)
+    for name, split in restored.splits.items():
+        assert np.allclose(split.velocities, null.split(name).velocities, atol=1e-9)
+    assert "differ from the backward differences" in found["sentence"]

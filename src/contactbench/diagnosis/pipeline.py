@@ -21,6 +21,7 @@ from contactbench.diagnosis import (
     predictable,
     proof,
     simulated_drag,
+    velocities,
 )
 from contactbench.diagnosis.decision import Decision
 from contactbench.diagnosis.fitting import ResidualFit
@@ -65,6 +66,10 @@ class Diagnosis:
     ):
         if "generator" in dataset.meta:
             raise ContactbenchError("diagnosis must not see meta.generator: pass dataset.for_models([...])")
+        # Recorded velocities in the convention the simulators restart from (diagnosis.velocities; its own generator,
+        # as the model-free checks below: the steps' draws stay as they were).
+        self.velocities = velocities.check(dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence)
+        dataset = velocities.aligned(dataset, self.velocities)
         self.dataset = dataset
         self.budget = budget
         self.decision = decision
@@ -221,6 +226,7 @@ def run_diagnosis(
         "unexplained": unexplained,
         "open_world": open_world_record,
         "predictable": predictor,
+        "velocities": steps.velocities,
         "free_flight": falling,
         "contact_signatures": steps.contact,
         "base_parameters": base.reported(base_values)["base"],

@@ -281,6 +281,8 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         "",
         document["free_flight"]["sentence"],
         "",
+        document["velocities"]["sentence"],
+        "",
         *_free_flight_table(document["free_flight"]),
         *_contact_lines(document.get("contact_signatures")),
         "## Held-out (test, full rollouts from the context frames)",
