@@ -167,7 +167,7 @@ def _unexplained_sentence(document: dict) -> str:
         return document["predictable"]["sentence"]
     if found["by"] == "contact_signatures":
         signatures = document["contact_signatures"]["signatures"]
-        return "Something the library does not list is missing, measured model-free in contact: " + " ".join(
+        return "Something is missing that no name modelled in MuJoCo improves, measured model-free in contact: " + " ".join(
             signatures[name]["sentence"] for name in found["depends_on"]
         )
     found = document["open_world"]
