@@ -167,9 +167,8 @@ def _unexplained_sentence(document: dict) -> str:
         return document["predictable"]["sentence"]
     if found["by"] == "contact_signatures":
         signatures = document["contact_signatures"]["signatures"]
-        return "Something is missing that no name modelled in MuJoCo improves, measured model-free in contact: " + " ".join(
-            signatures[name]["sentence"] for name in found["depends_on"]
-        )
+        measured = " ".join(signatures[name]["sentence"] for name in found["depends_on"])
+        return "Something is missing that no name modelled in MuJoCo improves, measured model-free: " + measured
     found = document["open_world"]
     located, held = found["located"], found["heldout"]
     phase_share = located["phase_shares"][located["phase"]]
