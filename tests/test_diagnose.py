@@ -365,3 +365,34 @@ def test_only_effects_that_change_free_flight_may_lean_on_it():
 
     flying = {name for name, effect in library(0.1).items() if effect.in_flight}
     assert flying == {"air_drag", "wind", "com_offset", "inertia_mismatch", "gravity_scale"}
+
+
+def test_each_of_two_named_effects_must_improve_the_held_out_rollouts_given_the_other(monkeypatch):
+    from types import SimpleNamespace
+
+    from contactbench.diagnosis import proof
+    from contactbench.diagnosis.decision import Decision
+    from contactbench.diagnosis.library import Hypothesis, library
+    from contactbench.diagnosis.pipeline import Budget
+
+    rng = np.random.default_rng(0)
+    errors = rng.uniform(0.2, 0.4, size=110)  # per test toss, the pair's full-rollout position error
+    effects = library(0.1)
+    pair = Hypothesis(1, (effects["wind"], effects["inertia_mismatch"]))
+
+    def scores(without_inertia: float, without_wind: float):
+        def full_rollouts(steps, hypothesis, values):
+            factor = {("wind",): without_inertia, ("inertia_mismatch",): without_wind}.get(hypothesis.names, 1.0)
+            return {"pos_err": errors * factor * rng.uniform(0.99, 1.01, size=110)}
+
+        monkeypatch.setattr(proof, "full_rollouts", full_rollouts)
+        steps = SimpleNamespace(budget=Budget(bootstrap=500), rng=rng, decision=Decision())
+        return proof.each_effect(steps, pair, pair.start())
+
+    kept, values, records = scores(without_inertia=1.0, without_wind=1.5)  # the inertia adds nothing on test
+    assert kept.names == ("wind",) and len(values) == len(kept.parameters)
+    assert [r["kept"] for r in records] == [True, False]
+    kept, _, records = scores(without_inertia=1.2, without_wind=1.5)  # each improves the tosses given the other
+    assert kept.names == ("wind", "inertia_mismatch") and all(r["kept"] for r in records)
+    kept, _, _ = scores(without_inertia=1.0, without_wind=1.0)  # neither alone: they stand or fall together
+    assert kept.names == ("wind", "inertia_mismatch")

@@ -202,7 +202,10 @@ def run_diagnosis(
     base, base_values = steps.fit_base()
     located = locate.locate(steps, base, base_values)
     final, final_values, candidates = naming.name_effects(steps, base, base_values)
+    named_on_val = final.names
+    final, final_values, each_on_test = proof.each_effect(steps, final, final_values)
     held, before, after = proof.prove(steps, base, base_values, final, final_values)
+    held["each_effect"] = each_on_test
     open_world_record = predictor = unexplained = None
     if not held["confirmed"] and not steps.confounded:
         # Nothing named is proven: before saying `none` (or leaving an unconfirmed name as the answer), is what the
@@ -211,7 +214,7 @@ def run_diagnosis(
         # explain is not read as something missing besides it.
         open_world_record = open_world.explain(steps, final, final_values)
         predictor = predictable.check(steps, final, final_values)
-        unexplained = _unexplained(open_world_record, predictor, steps.contact, final.names)
+        unexplained = _unexplained(open_world_record, predictor, steps.contact, named_on_val)
     effects = []
     for effect in final.effects:
         chosen = next(c for c in candidates if c["name"] == effect.name and c.get("chosen"))

@@ -311,6 +311,11 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         for g in document.get("given_the_others", [])
     ]
     lines += [
+        f"- `{e['name']}` given the others on test (full rollouts): {e['improvement']:.1%} (95% CI {e['ci95'][0]:.1%} "
+        f"to {e['ci95'][1]:.1%}), {'kept' if e['kept'] else 'dropped: it does not improve the held-out tosses'}"
+        for e in held.get("each_effect", [])
+    ]
+    lines += [
         "",
         "## Candidates (val)",
         "",
