@@ -25,25 +25,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from diagnosis_proof import SHAPES  # beside this script: the proof's shapes, at the same nominal contact
 
 from contactbench.diagnosis import predictable
 from contactbench.diagnosis.library import Hypothesis
 from contactbench.diagnosis.pipeline import Budget, Diagnosis
 from contactbench.generation.generator import generate_dataset
-from contactbench.generation.scenes import SceneSpec
 from contactbench.recordings import read_recordings
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data" / "predictable"
-SHAPES = {
-    "cube": SceneSpec(name="frictioncubes", friction=0.5, restitution=0.0),
-    "dodecahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=12),
-    "octahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=8),
-    "tetrahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=4),
-    "icosahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=20),
-    "truncated_octahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=14),
-    "rhombicuboctahedron": SceneSpec(name="polyhedra", friction=0.5, restitution=0.125, faces=26),
-}
 NULLS = (
     *(("cube", seed, (), 1.0) for seed in range(5)),
     *((shape, seed, (), 1.0) for shape in ("dodecahedron", "octahedron", "tetrahedron") for seed in (0, 1)),
