@@ -337,7 +337,7 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{' (margin: measured in free flight)' if c['passes'] and c.get('measured_model_free') else ''}"
             f"{' (significant in free flight)' if c['passes'] and c['ci95'][0] <= 0 else ''}"
             f"{' (margin: its gain in free flight)' if by_flight and not c.get('measured_model_free') else ''}"
-            f"{' (ruled out in free flight)' if c.get('ruled_out_model_free') else ''}"
+            f"{' (ruled out model-free)' if c.get('ruled_out_model_free') else ''}"
             f"{' (fitted below its resolution: not this physics)' if c.get('negligible') else ''}"
             f"{_special_case_note(c)}{_refit_control_note(c)} |"
         )
