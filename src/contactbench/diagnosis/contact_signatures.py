@@ -18,7 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench import rotations
-from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED, RULED_OUT
+from contactbench.diagnosis.free_flight import (
+    INCONCLUSIVE,
+    MEASURED,
+    RULED_OUT,
+    least_squares_by_toss,
+    resample_weights,
+)
 from contactbench.diagnosis.phases import CONTACT_HEIGHT, IMPACT_SPEED, SLIP_SPEED, recorded_velocities
 from contactbench.recordings import Recordings, Split
 
@@ -343,24 +349,9 @@ def split_rows(dataset: Recordings, split: Split) -> dict:
 # ---------------------------------------------------------------- fits with resampled tosses
 
 
-def resample_weights(n_tosses: int, rng: np.random.Generator, bootstrap: int) -> np.ndarray:
-    """[bootstrap + 1, n_tosses] how often each toss is drawn: row 0 every toss once (the point estimate)."""
-    weights = np.zeros((bootstrap + 1, n_tosses))
-    weights[0] = 1
-    picks = rng.integers(0, n_tosses, size=(bootstrap, n_tosses))
-    np.add.at(weights, (np.arange(1, bootstrap + 1)[:, None], picks), 1)
-    return weights
-
-
 def fit(rows: Rows, design: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Least squares of rows.response on `design` [F, P] for every resample: [draws + 1, P]. Per toss the normal
-    equations, so that a resample only weights them."""
-    n_tosses, parameters = weights.shape[1], design.shape[1]
-    normal = np.zeros((n_tosses, parameters, parameters))
-    moment = np.zeros((n_tosses, parameters))
-    np.add.at(normal, rows.toss, design[:, :, None] * design[:, None, :])
-    np.add.at(moment, rows.toss, design * rows.response[:, None])
-    return np.einsum("dij,dj->di", np.linalg.pinv(np.einsum("dn,nij->dij", weights, normal)), weights @ moment)
+    """Least squares of rows.response on `design` [F, P] for every resample: [draws + 1, P]."""
+    return least_squares_by_toss(rows.toss, design, rows.response, weights)
 
 
 def _interval(samples: np.ndarray, confidence: float) -> list[float]:

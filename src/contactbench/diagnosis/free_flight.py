@@ -35,6 +35,30 @@ SUPPORTED = 0.5
 MEASURED, RULED_OUT, INCONCLUSIVE = "measured", "ruled out", "inconclusive"
 
 
+def resample_weights(n_tosses: int, rng: np.random.Generator, bootstrap: int) -> np.ndarray:
+    """[bootstrap + 1, n_tosses] how often each toss is drawn: row 0 every toss once (the point estimate), then the
+    resamples (the frames of a toss count together)."""
+    weights = np.zeros((bootstrap + 1, n_tosses))
+    weights[0] = 1
+    picks = rng.integers(0, n_tosses, size=(bootstrap, n_tosses))
+    np.add.at(weights, (np.arange(1, bootstrap + 1)[:, None], picks), 1)
+    return weights
+
+
+def least_squares_by_toss(
+    toss: np.ndarray, design: np.ndarray, response: np.ndarray, weights: np.ndarray, per_row: int = 1
+) -> np.ndarray:
+    """Least squares of `response` [R] on `design` [R, P] for every row of `weights` (resample_weights): [draws + 1,
+    P]. Per toss the normal equations, so that a resample only weights them; `toss` [R / per_row] names the toss of
+    each group of `per_row` consecutive rows (a frame's three axes)."""
+    n_tosses, parameters = weights.shape[1], design.shape[1]
+    owner = np.repeat(toss, per_row)
+    normal, moment = np.zeros((n_tosses, parameters, parameters)), np.zeros((n_tosses, parameters))
+    np.add.at(normal, owner, design[:, :, None] * design[:, None, :])
+    np.add.at(moment, owner, design * response[:, None])
+    return np.einsum("dij,dj->di", np.linalg.pinv(np.einsum("dn,nij->dij", weights, normal)), weights @ moment)
+
+
 def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
     """[N, T, K] True where body k is in free flight (see CLEARANCE) at frames t-1, t and t+1 (False at the ends)."""
     poses = np.nan_to_num(split.poses)
@@ -92,17 +116,8 @@ def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: 
     design = np.zeros((len(v), 3, 4))
     design[:, :, :3] = np.eye(3)
     design[:, :, 3] = -np.linalg.norm(v, axis=-1, keepdims=True) * v
-    normal, moment = np.zeros((len(used), 4, 4)), np.zeros((len(used), 4))
-    np.add.at(normal, rows, np.einsum("fki,fkj->fij", design, design))
-    np.add.at(moment, rows, np.einsum("fki,fk->fi", design, a))
-    picks = rng.integers(0, len(used), size=(draws, len(used)))
-    weights = np.zeros((draws + 1, len(used)))  # row 0: every toss once (the point estimate); then the resamples
-    weights[0] = 1
-    np.add.at(weights, (np.arange(1, draws + 1)[:, None], picks), 1)
-    solved = np.einsum(
-        "dij,dj->di",
-        np.linalg.pinv(np.einsum("dn,nij->dij", weights, normal)),
-        weights @ moment,
+    solved = least_squares_by_toss(
+        rows, design.reshape(-1, 4), a.reshape(-1), resample_weights(len(used), rng, draws), per_row=3
     )  # [draws + 1, 4]
     point, samples = solved[0], solved[1:]
     tail = (1.0 - confidence) / 2 * 100

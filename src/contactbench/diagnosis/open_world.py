@@ -89,15 +89,17 @@ def recorded_states(dataset: Recordings, split: Split, segments: Segments, origi
     return np.nan_to_num(features), phases
 
 
+def integration_matrix(length: int, dt: float) -> np.ndarray:
+    """[L, L]: row r (frame r + 1 of the segment) from the accelerations at the states 0 .. r, semi-implicit Euler on
+    the frame grid: dt^2 (r + 1 - i) for i <= r."""
+    rows, states = np.meshgrid(np.arange(length), np.arange(length), indexing="ij")
+    return dt**2 * np.where(states <= rows, rows + 1 - states, 0).astype(float)
+
+
 def integrate(features: np.ndarray, phases: np.ndarray, dt: float, widths: np.ndarray) -> Dictionary:
     """G_j = dt^2 sum_{i<j} (j - i) theta_i per phase: the displacement after j frames under accelerations theta_i."""
     gated = features[..., None, :] * (phases[..., None, None] == np.arange(len(PHASES))[:, None])  # [M, L, K, P, F]
-    index = np.arange(features.shape[1], dtype=float)[None, :, None, None, None]
-    # frame j = 1..L: sums over i = 0..j-1
-    sums = np.cumsum(gated, axis=1)
-    weighted = np.cumsum(gated * index, axis=1)
-    j = index + 1
-    displacement = dt**2 * (j * sums - weighted)
+    displacement = np.einsum("ri,mikpf->mrkpf", integration_matrix(features.shape[1], dt), gated)
     return Dictionary(displacement / (widths[None, None, :, None, None] / 2), displacement)
 
 

@@ -36,6 +36,7 @@ import torch
 
 from contactbench import rotations
 from contactbench.diagnosis.decision import bootstrap_ratio
+from contactbench.diagnosis.open_world import integration_matrix
 from contactbench.diagnosis.phases import (
     CONTACT_HEIGHT,
     FREE,
@@ -326,13 +327,6 @@ def inputs(
 
 
 # ---------------------------------------------------------------- the correction
-
-
-def integration_matrix(length: int, dt: float) -> np.ndarray:
-    """[L, L]: row r (frame r + 1 of the segment) from the accelerations at the states 0 .. r, semi-implicit Euler on
-    the frame grid: dt^2 (r + 1 - i) for i <= r (diagnosis.open_world.integrate)."""
-    rows, states = np.meshgrid(np.arange(length), np.arange(length), indexing="ij")
-    return dt**2 * np.where(states <= rows, rows + 1 - states, 0).astype(float)
 
 
 class Member(torch.nn.Module):

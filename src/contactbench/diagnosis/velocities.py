@@ -18,7 +18,7 @@ import dataclasses
 
 import numpy as np
 
-from contactbench.diagnosis.free_flight import SPLITS, free_frames
+from contactbench.diagnosis.free_flight import SPLITS, free_frames, resample_weights
 from contactbench.recordings import Recordings, Split
 
 # The offset must exceed this fraction of |g| dt (the velocity gravity adds in one frame) to count: 1/2 and 3/7 of it
@@ -38,8 +38,8 @@ def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: 
     offsets = (split.velocities[..., :3] - backward)[free]  # [F, 3]
     sums, counts = np.zeros((len(used), 3)), np.bincount(rows, minlength=len(used)).astype(float)
     np.add.at(sums, rows, offsets)
-    picks = rng.integers(0, len(used), size=(draws, len(used)))
-    samples = sums[picks].sum(axis=1) / counts[picks].sum(axis=1)[:, None]  # [draws, 3]
+    weights = resample_weights(len(used), rng, draws)[1:]
+    samples = (weights @ sums) / (weights @ counts)[:, None]  # [draws, 3]
     tail = (1.0 - confidence) / 2 * 100
     return {
         "n_trajectories": int(len(used)),
