@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN = $(VENV)/bin
 
-.PHONY: main test lint benchmarks matrix
+.PHONY: main test lint benchmarks matrix slurm-check
 
 # The embedded default, conf/experiment/main.yaml: one generated variant and the real cube, every model at
 # budget=quick, scored on val and test, then one results table.
@@ -14,14 +14,21 @@ main: $(VENV)/.installed
 
 # The whole benchmark at one budget, conf/experiment/matrix.yaml: {mujoco_default, sysid, gnn, hybrid, residual} x 22
 # synthetic variants + the real cube, scored on val and test, then the report. The hybrid model skips multi-body
-# variants with one line each. `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep
+# variants with one line each; `make matrix SEEDS=3` fits every cell with seeds 0, 1, 2 and the report shows their mean
+# and spread. `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep
 # to a Slurm cluster.
 BUDGET ?= quick
+SEEDS ?= 1
 ARGS ?=
 matrix: $(VENV)/.installed
 	$(BIN)/python generate.py -m 'variant=glob(*)'
-	$(BIN)/python train.py -m experiment=matrix budget=$(BUDGET) $(ARGS)
+	$(BIN)/python train.py -m experiment=matrix budget=$(BUDGET) $(if $(filter-out 1,$(SEEDS)),'seed=range($(SEEDS))') $(ARGS)
 	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/$(BUDGET)
+
+# A real single-node Slurm on this machine (root; apt-get install slurm-wlm munge): a small matrix through
+# hydra/launcher=cluster, one GNN job killed with scontrol requeue and resumed, the report counting every job done.
+slurm-check: $(VENV)/.installed
+	$(BIN)/python cluster/slurm_check.py
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q

@@ -36,12 +36,15 @@ def composed(model: str, variant: str, budget: str) -> DictConfig:
 
 def curve(run_dir: Path) -> list[tuple[float, float, float]]:
     """(training seconds, val rollout position error, val rollout rotation error) at every validation of a run."""
+    # a setting chosen on val logged its curves under its name (checkpoints/<setting>/best.ckpt)
+    checkpoint = Path(json.loads((run_dir / "fitted.json").read_text())["checkpoint"])
+    setting = f"{checkpoint.parent}/" if checkpoint.parent != Path() else ""
     with open(run_dir / "csv" / "metrics.csv", newline="") as handle:
-        rows = [row for row in csv.DictReader(handle) if row.get("train/seconds")]  # the validations
+        rows = [row for row in csv.DictReader(handle) if row.get(f"{setting}train/seconds")]  # the validations
     # runs logged before the one selection callback (ValRollouts) named the keys val/rollout_{pos,rot}_err
-    prefix = "val/" if any(row.get("val/pos_err") for row in rows) else "val/rollout_"
+    prefix = setting + ("val/" if any(row.get(f"{setting}val/pos_err") for row in rows) else "val/rollout_")
     return [
-        (float(row["train/seconds"]), float(row[f"{prefix}pos_err"]), float(row[f"{prefix}rot_err"]))
+        (float(row[f"{setting}train/seconds"]), float(row[f"{prefix}pos_err"]), float(row[f"{prefix}rot_err"]))
         for row in rows
         if row.get(f"{prefix}pos_err")
     ]

@@ -1,7 +1,9 @@
 """Mesh GNN throughput on CPU (or GPU): training samples/s and rollout frames/s, for one cube and for three cubes.
 
 Each training rate is printed beside the bare network's (forward + backward of EncodeProcessDecode on the same
-graphs, features built once), so the ratio shows what features, edges, the rigid fit and the loss cost on top.
+graphs, features built once), so the ratio shows what features, edges, the rigid fit and the loss cost on top; and a
+training step's FLOPs (torch's FlopCounterMode) against the device's measured matmul throughput at the network's own
+shapes (an [edges, latent] x [latent, latent] product), so the distance to the limit is a ratio too.
 
 The single-cube scene is the shipped real cube data. The three-cube scene replays three real tosses side by side,
 1.2 widths apart along x, so bodies pass within the collision radius and the graph has the size and the collision
@@ -19,6 +21,7 @@ import time
 
 import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from contactbench.config import REPO_ROOT
 from contactbench.models.gnn.graph import build_edges
@@ -80,6 +83,31 @@ def training_samples_per_second(
         optimizer.step()
 
     return timed(step, steps, batch_size, module.device), timed(bare, steps, batch_size, module.device)
+
+
+def step_flops(module: GNNModule, dataset: Recordings, batch_size: int) -> float:
+    """Floating-point operations of one training step's forward and backward pass (matmuls; the rest is minor)."""
+    rigid = module.hparams.rigid
+    loader = GNNDataModule(
+        dataset, batch_size=batch_size, velocity_history=module.hparams.velocity_history, rigid=rigid
+    )
+    batch = next(iter(loader.train_dataloader())).to(module.device)
+    with FlopCounterMode(display=False) as counter:
+        module.simulator.loss(batch, add_noise=True).backward()
+    return float(counter.get_total_flops())
+
+
+def matmul_flops_per_second(rows: int, latent: int, device: torch.device, repeats: int = 50) -> float:
+    """The device's throughput on the network's typical product, [rows, latent] x [latent, latent]."""
+    left, right = torch.randn(rows, latent, device=device), torch.randn(latent, latent, device=device)
+    for _ in range(3):
+        left @ right
+    synchronize(device)
+    started = time.perf_counter()
+    for _ in range(repeats):
+        left @ right
+    synchronize(device)
+    return 2 * rows * latent * latent * repeats / (time.perf_counter() - started)
 
 
 def timed(step, steps: int, batch_size: int, device: torch.device) -> float:
@@ -156,10 +184,17 @@ def main() -> None:
         module.setup("fit")
         samples, bare = training_samples_per_second(module, dataset, args.batch_size, args.train_steps)
         frames = rollout_frames_per_second(module, dataset, args.rollout_trajectories, args.rollout_frames)
+        flops = step_flops(module, dataset, args.batch_size)
+        achieved = flops * samples / args.batch_size
+        limit = matmul_flops_per_second(
+            args.batch_size * module.simulator.scene.n_nodes * 4, args.latent_size, module.device
+        )
         print(
             f"{n_bodies} cube(s), {module.simulator.scene.n_nodes} nodes: training {samples:8.1f} samples/s "
             f"(bare network {bare:8.1f}/s, ratio {samples / bare:.2f}), "
-            f"rollout {frames:8.1f} frames/s ({args.rollout_trajectories} trajectories batched)"
+            f"rollout {frames:8.1f} frames/s ({args.rollout_trajectories} trajectories batched)\n"
+            f"  a training step: {flops / 1e9:.2f} GFLOP, {achieved / 1e9:.1f} GFLOP/s achieved; matmul at the "
+            f"network's shape {limit / 1e9:.1f} GFLOP/s: {achieved / limit:.2f} of the limit"
         )
         if args.rigid and n_bodies > 1:  # the same network, bodies pushed apart after every step (model=gnn's default)
             separating = GNNModule(

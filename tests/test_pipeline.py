@@ -121,6 +121,31 @@ def test_sysid_smoke_fits_saves_parameters_and_evaluate_scores_them(tmp_path):
     assert document["model"] == "sysid" and document["pos_err"] == pytest.approx(val_pos_err)
 
 
+def test_a_setting_chosen_on_val_is_the_best_candidate_and_evaluate_scores_it(tmp_path):
+    """choose_on_val fits every setting from the same start and keeps the lowest best val/pos_err; evaluate.py
+    restores that candidate's checkpoint."""
+    overrides = [
+        "dataset=contactnets_cube",
+        "model=gnn",
+        "budget=smoke",
+        "~model.choose_on_val",
+        "+model.choose_on_val.module.lr=[1e-3,1e-2]",
+    ]
+    run_dir = tmp_path / "train-run"
+    val_pos_err = runs.train(compose_config("train", overrides, tmp_path), run_dir)
+    fitted = json.loads((run_dir / "fitted.json").read_text())
+    scores = {entry["setting"]["module.lr"]: entry["val_pos_err"] for entry in fitted["candidates"]}
+    assert set(scores) == {1e-3, 1e-2} and fitted["chosen_on_val"]["module.lr"] == min(scores, key=scores.get)
+    assert fitted["checkpoint"].startswith(f"lr={fitted['chosen_on_val']['module.lr']:g}/")
+    assert sorted(path.name for path in (run_dir / "checkpoints").iterdir()) == ["lr=0.001", "lr=0.01"]
+    header = (run_dir / "csv" / "metrics.csv").read_text().splitlines()[0]
+    assert "lr=0.001/val/pos_err" in header and "lr=0.01/val/pos_err" in header
+    document = runs.evaluate(
+        compose_config("evaluate", [*overrides, f"train_dir={run_dir}", "split=val"], tmp_path), tmp_path / "eval"
+    )
+    assert document["pos_err"] == pytest.approx(val_pos_err)
+
+
 def test_sysid_process_exits_by_itself(tmp_path):
     """nevergrad's recast optimisers leave threads behind; train.py must still exit on its own."""
     result = run_entry_point(

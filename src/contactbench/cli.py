@@ -1,5 +1,5 @@
 """Entry-point guard: user errors become one clear line and exit status 2; a failed multirun job lets the sweep go
-on."""
+on; the console carries no third-party advice that is not about this run."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import functools
 import logging
 import os
 import sys
+import warnings
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -61,9 +62,22 @@ def _record_outcome(status: str, why: str) -> None:
     atomic.write_json(folder / OUTCOME, {"status": status, "why": why.removeprefix("error: ")})
 
 
+class _NoAdvert(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("💡 Tip")
+
+
+def quiet_third_party() -> None:
+    """Drop Lightning's litlogger advert on every fit, and its hint to use srun wherever Slurm is installed (a job
+    under Slurm uses it; one started by hand on a Slurm login node is meant to run there)."""
+    logging.getLogger("pytorch_lightning.utilities.rank_zero").addFilter(_NoAdvert())
+    warnings.filterwarnings("ignore", message="The `srun` command is available on your system")
+
+
 def guarded(main):
     @functools.wraps(main)
     def wrapper(cfg):
+        quiet_third_party()
         try:
             return main(cfg)
         except (ContactbenchError, FileNotFoundError, OmegaConfBaseException) as error:

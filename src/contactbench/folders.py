@@ -100,9 +100,11 @@ def check_checkpoint(cfg: DictConfig, output_dir: Path) -> None:
     states."""
     if cfg.model.get("kind") != "lightning":
         return
-    path = Path(output_dir) / "checkpoints" / "last.ckpt"
-    if not path.exists():
-        return
+    for path in sorted((Path(output_dir) / "checkpoints").rglob("last.ckpt")):  # one per setting chosen on val
+        _check_one_checkpoint(cfg, path)
+
+
+def _check_one_checkpoint(cfg: DictConfig, path: Path) -> None:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # torch warns about pickle protocols before refusing; one line is enough

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from pathlib import Path
@@ -10,7 +11,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from contactbench import atomic, folders, restore, settings, tracking
 from contactbench.config import interactive
@@ -98,14 +99,63 @@ def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> Cont
 
 
 def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
+    """One fit, or one per setting of the model's `choose_on_val` grid, keeping the setting whose best checkpoint has
+    the lowest val/pos_err: the same choice for a named dataset and a user's own folder."""
+    candidates = settings_grid(cfg.model.get("choose_on_val"))
+    if not candidates:
+        checkpoint, _ = _fit_one(cfg, cfg.model, dataset, output_dir, "", logger)
+        chosen: dict = {}
+    else:
+        scores = []
+        for setting in candidates:
+            model_cfg = cfg.model.copy()
+            for key, value in setting.items():
+                OmegaConf.update(model_cfg, key, value, merge=False)
+            name = setting_name(setting)
+            best, score = _fit_one(cfg, model_cfg, dataset, output_dir, name, tracking.prefixed(logger, name))
+            log.info("%s: best val/pos_err %.4f", name, score)
+            scores.append({"setting": setting, "val_pos_err": score, "checkpoint": f"{name}/{best}"})
+        winner = min(
+            scores, key=lambda entry: entry["val_pos_err"] if math.isfinite(entry["val_pos_err"]) else math.inf
+        )
+        checkpoint, chosen = winner["checkpoint"], {"chosen_on_val": winner["setting"], "candidates": scores}
+        tracking.log_choice(logger, winner["setting"])
+    module = restore.load_module(cfg, dataset, output_dir / "checkpoints" / checkpoint)
+    summary = module.fitted_summary() if hasattr(module, "fitted_summary") else {}
+    atomic.write_json(
+        output_dir / "fitted.json", {"model": cfg.model.name, "checkpoint": checkpoint, **chosen, **summary}
+    )
+    return module.to_contact_model()
+
+
+def settings_grid(grid: DictConfig | None) -> list[dict]:
+    """Every combination of a `choose_on_val` tree under model ({module: {noise_std: [values]}}), as {dotted key:
+    value} settings (none: [])."""
+    if not grid:
+        return []
+    leaves = tracking.flatten(OmegaConf.to_container(grid))
+    keys = list(leaves)
+    return [dict(zip(keys, values)) for values in itertools.product(*(list(leaves[key]) for key in keys))]
+
+
+def setting_name(setting: dict) -> str:
+    return ",".join(f"{key.rsplit('.', 1)[-1]}={value:g}" for key, value in setting.items())
+
+
+def _fit_one(
+    cfg: DictConfig, model_cfg: DictConfig, dataset: Recordings, output_dir: Path, setting: str, logger
+) -> tuple[str, float]:
+    """Fit model_cfg's Lightning module, checkpoints in output_dir/checkpoints/<setting> (resumed from its last.ckpt
+    when cfg.resume). Returns the selected checkpoint's file name and its val/pos_err (NaN without one)."""
+    checkpoint_dir = output_dir / "checkpoints" / setting
+    pl.seed_everything(cfg.seed, workers=True)  # every setting starts from the weights a fit of it alone starts from
     # Objects (the dataset) go to the partial, not through instantiate's config merge.
-    datamodule = instantiate(cfg.model.datamodule, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
-    module = instantiate(cfg.model.module, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
-    checkpoint_dir = output_dir / "checkpoints"
-    callbacks = [_callback(node, checkpoint_dir) for node in cfg.model.get("callbacks", {}).values()]
+    datamodule = instantiate(model_cfg.datamodule, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
+    module = instantiate(model_cfg.module, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
+    callbacks = [_callback(node, checkpoint_dir) for node in model_cfg.get("callbacks", {}).values()]
     trainer = instantiate(
         cfg.trainer,
-        **cfg.model.get("trainer", {}),
+        **model_cfg.get("trainer", {}),
         callbacks=callbacks,
         logger=logger if logger is not None else False,
         default_root_dir=str(output_dir),
@@ -114,16 +164,13 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
     resume_from = str(last) if cfg.resume and last.exists() else None
     if resume_from:
         log.info("resuming from %s", resume_from)  # folders.check has checked its signature and contents
-        tracking.drop_rows_from_step(
-            output_dir, int(torch.load(resume_from, weights_only=True, map_location="cpu")["global_step"])
-        )
+        step = int(torch.load(resume_from, weights_only=True, map_location="cpu")["global_step"])
+        tracking.drop_rows_from_step(output_dir, step, prefix=f"{setting}/" if setting else "")
     trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
-    best_path = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-    checkpoint = Path(best_path).name if best_path else "last.ckpt"
-    module = restore.load_module(cfg, dataset, checkpoint_dir / checkpoint)
-    summary = module.fitted_summary() if hasattr(module, "fitted_summary") else {}
-    atomic.write_json(output_dir / "fitted.json", {"model": cfg.model.name, "checkpoint": checkpoint, **summary})
-    return module.to_contact_model()
+    callback = trainer.checkpoint_callback
+    best_path = callback.best_model_path if callback else ""
+    score = callback.best_model_score if callback is not None else None
+    return (Path(best_path).name if best_path else "last.ckpt"), (math.nan if score is None else float(score))
 
 
 def _callback(node: DictConfig, checkpoint_dir: Path):
@@ -153,7 +200,11 @@ def _score_and_write(
         dataset_name=cfg.dataset.name,
         variant=cfg.dataset.variant,
         truth=observed.truth.split(split),
-        annotations={**observed.observation, "variant_values": dict(cfg.dataset.get("values") or {})},
+        annotations={
+            **observed.observation,
+            "seed": int(cfg.seed),
+            "variant_values": dict(cfg.dataset.get("values") or {}),
+        },
     )
     for key, value in score.metrics.summary.items():
         # A reported metric that is not a number (null in metrics.json) would rank as nothing at all: an error instead.

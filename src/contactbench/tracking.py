@@ -44,7 +44,7 @@ def curated_params(cfg: DictConfig) -> dict:
         "seed": tree.get("seed"),
         "context_frames": tree.get("context_frames"),
     }
-    return {key: value for key, value in _flatten(chosen).items() if value is not None}
+    return {key: value for key, value in flatten(chosen).items() if value is not None}
 
 
 def run_tags(cfg: DictConfig) -> dict[str, str]:
@@ -119,17 +119,59 @@ def _set_tags(logger: Logger, tags: dict[str, str]) -> None:
         logger.experiment.config.update({f"tags/{key}": value for key, value in tags.items()}, allow_val_change=True)
 
 
+def prefixed(logger: Logger | None, prefix: str) -> Logger | None:
+    """The run's logger as one setting of a choice on val sees it: metric names start with `prefix/`."""
+    return None if logger is None else PrefixedLogger(logger, prefix)
+
+
+class PrefixedLogger(Logger):
+    """Metrics to another logger under `prefix/`; hyperparameters are the run's own, logged once by the run."""
+
+    def __init__(self, logger: Logger, prefix: str):
+        super().__init__()
+        self.inner, self.prefix = logger, prefix
+
+    @property
+    def name(self) -> str | None:
+        return self.inner.name
+
+    @property
+    def version(self) -> int | str | None:
+        return self.inner.version
+
+    @property
+    def save_dir(self) -> str | None:
+        return self.inner.save_dir
+
+    def log_hyperparams(self, params, *args, **kwargs) -> None:
+        pass
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        self.inner.log_metrics({f"{self.prefix}/{key}": value for key, value in metrics.items()}, step=step)
+
+    def save(self) -> None:
+        self.inner.save()
+
+
+def log_choice(logger: Logger | None, setting: dict) -> None:
+    """The setting a choice on val kept, as tags (MLflow, W&B) and as a line of the CSV metrics."""
+    if logger is None:
+        return
+    _set_tags(logger, {f"chosen_on_val/{key}": str(value) for key, value in setting.items()})
+    logger.log_metrics({f"chosen_on_val/{key}": float(value) for key, value in setting.items()}, step=0)
+
+
 def close_logger(logger: Logger | None, status: str = "success") -> None:
     if logger is not None:
         logger.finalize(status)
 
 
-def _flatten(tree, prefix: str = "") -> dict:
+def flatten(tree, prefix: str = "") -> dict:
     flat = {}
     for key, value in (tree or {}).items():
         name = f"{prefix}{key}"
         if isinstance(value, dict):
-            flat.update(_flatten(value, name + "."))
+            flat.update(flatten(value, name + "."))
         else:
             flat[name] = value
     return flat
@@ -155,15 +197,21 @@ class ResumableCSVLogger(CSVLogger):
         return self._experiment
 
 
-def drop_rows_from_step(output_dir: Path, step: int) -> None:
-    """Remove csv/metrics.csv rows logged at or after `step`: a resumed run logs those steps again."""
+def drop_rows_from_step(output_dir: Path, step: int, prefix: str = "") -> None:
+    """Remove csv/metrics.csv rows logged at or after `step` (with prefix: only rows of metrics named so, one
+    setting's of a choice on val): a resumed run logs those steps again."""
     path = Path(output_dir) / "csv" / "metrics.csv"
     if not path.is_file():
         return
     with open(path, newline="") as file:
         reader = csv.DictReader(file)
         fields, rows = reader.fieldnames or [], list(reader)
-    kept = [row for row in rows if not row.get("step") or int(float(row["step"])) < step]
+
+    def logged_again(row: dict) -> bool:
+        ours = not prefix or any(value not in ("", None) for key, value in row.items() if key.startswith(prefix))
+        return ours and bool(row.get("step")) and int(float(row["step"])) >= step
+
+    kept = [row for row in rows if not logged_again(row)]
     partial = path.with_name(f".{path.name}.partial")
     with open(partial, "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=fields)

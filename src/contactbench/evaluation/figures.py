@@ -32,7 +32,7 @@ def _unit(key: str) -> float:
 
 
 # Table 3's rule: a dimension matters for a method when its mean test position error moves by more than this
-# fraction of its smallest value across the dimension's variants.
+# fraction of its smallest value across the dimension's variants (and, with several seeds, by more than their spread).
 IMPORTANCE_THRESHOLD = 0.25
 
 
@@ -48,6 +48,37 @@ class Run:
         if len(values) == 1:
             return float(next(iter(values.values())))
         return float(self.summary["variant"].split("=", 1)[1])
+
+
+@dataclass(frozen=True)
+class Spread:
+    """One metric of a cell, the runs that differ only by seed: the mean over the seeds and their min-max range."""
+
+    mean: float
+    low: float
+    high: float
+    n: int
+
+    @classmethod
+    def of(cls, values) -> Spread:
+        values = np.asarray(values, dtype=float)
+        return cls(float(values.mean()), float(values.min()), float(values.max()), len(values))
+
+    @property
+    def width(self) -> float:
+        return self.high - self.low
+
+    def overlaps(self, other: Spread) -> bool:
+        return self.low <= other.high and other.low <= self.high
+
+
+def seed_cells(runs: list[Run], key) -> list[list[Run]]:
+    """Runs with the same key(run) that differ only by seed, together (cells in the order of their keys): one run
+    per seed, the last found for it (metrics.json written before the seed was recorded count as one seed)."""
+    cells: dict = {}
+    for run in runs:
+        cells.setdefault(key(run), {})[run.summary.get("seed")] = run
+    return [list(cells[cell].values()) for cell in sorted(cells)]
 
 
 # How a dataset was observed (contactbench/observation.py): the sensitivity study's two axes and their plain values.
@@ -72,16 +103,45 @@ def load_test_runs(root: Path) -> list[Run]:
     return runs
 
 
-def _by_model(runs: list[Run], dataset: str) -> dict[str, list[Run]]:
-    grouped: dict[str, list[Run]] = {}
-    for run in runs:
-        if run.summary["dataset"] == dataset:
-            grouped.setdefault(run.summary["model"], []).append(run)
-    return {model: sorted(group, key=lambda r: r.value) for model, group in sorted(grouped.items())}
+def _by_model(runs: list[Run], dataset: str) -> dict[str, list[list[Run]]]:
+    """A dataset's runs per method: a cell per variant (its runs over seeds), in the order of the varied value."""
+    grouped: dict[str, list[list[Run]]] = {}
+    chosen = [run for run in runs if run.summary["dataset"] == dataset]
+    for cell in seed_cells(chosen, lambda run: (run.summary["model"], run.value, run.summary["variant"])):
+        grouped.setdefault(cell[0].summary["model"], []).append(cell)
+    return grouped
+
+
+def _plot_cells(axis, x: list[float], cells: list[list[Run]], key: str, label: str) -> None:
+    """One method's line over x: the mean over each cell's seeds, the 25-75% band across the test trajectories of all
+    its seeds, and with several seeds error bars from the lowest to the highest seed."""
+    unit = _unit(key)
+    spreads = [Spread.of([run.summary[key] * unit for run in cell]) for cell in cells]
+    means = np.array([spread.mean for spread in spreads])
+    (line,) = axis.plot(x, means, marker="o", label=label)
+    tosses = [np.concatenate([run.per_trajectory[key] for run in cell]) for cell in cells]
+    low, high = zip(*(np.nanpercentile(values, [25, 75]) * unit for values in tosses))
+    axis.fill_between(x, low, high, alpha=0.15, color=line.get_color())
+    if any(spread.n > 1 for spread in spreads):
+        lows, highs = np.array([[spread.low, spread.high] for spread in spreads]).T
+        reach = np.clip([means - lows, highs - means], 0, None)  # equal seeds' mean can round a hair past them
+        axis.errorbar(x, means, yerr=reach, fmt="none", capsize=3, color=line.get_color())
+
+
+def _plot_curve(axis, cell: list[Run], key: str, **style) -> None:
+    """A per-frame curve: the mean over the cell's seeds, and with several seeds a band from their min to their max."""
+    curves = np.array(
+        [[np.nan if v is None else v for v in run.summary["per_frame"][key]] for run in cell], dtype=float
+    ) * _unit(key)
+    (line,) = axis.plot(curves.mean(axis=0), **style)
+    if len(cell) > 1:
+        frames = np.arange(curves.shape[1])
+        axis.fill_between(frames, curves.min(axis=0), curves.max(axis=0), alpha=0.2, color=line.get_color())
 
 
 def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
-    """Mean per method against the varied parameter, with the 25-75% band across test trajectories."""
+    """Mean per method against the varied parameter, with the 25-75% band across test trajectories and, with
+    several seeds, the seeds' min-max as error bars."""
     grouped = _by_model(runs, dataset)
     if not grouped:
         return None
@@ -89,11 +149,8 @@ def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
     figure = new_figure(figsize=(4.2 * len(PANELS), 3.4))
     axes = figure.subplots(1, len(PANELS))
     for axis, (key, label) in zip(axes, PANELS):
-        for model, group in grouped.items():
-            x = [run.value for run in group]
-            (line,) = axis.plot(x, [run.summary[key] * _unit(key) for run in group], marker="o", label=model)
-            low, high = zip(*(np.nanpercentile(run.per_trajectory[key], [25, 75]) * _unit(key) for run in group))
-            axis.fill_between(x, low, high, alpha=0.15, color=line.get_color())
+        for model, cells in grouped.items():
+            _plot_cells(axis, [cell[0].value for cell in cells], cells, key, model)
         axis.grid(True, alpha=0.3)
         axis.set_xlabel(parameter)
         axis.set_ylabel(label)
@@ -105,16 +162,16 @@ def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
 def per_frame_figure(
     runs: list[Run], dataset: str, key: str, label: str, title: str, path: Path, values: list[float] | None = None
 ) -> Path | None:
-    """Per-frame curves (Fig. 7a: inter-body penetration, 7c: lowest vertex height) per method and variant."""
+    """Per-frame curves (Fig. 7a: inter-body penetration, 7c: lowest vertex height) per method and variant, the
+    mean over seeds with their min-max band."""
     chosen = [run for run in runs if run.summary["dataset"] == dataset and key in run.summary["per_frame"]]
     chosen = [run for run in chosen if values is None or run.value in values]
     if not chosen:
         return None
     figure = new_figure(figsize=(6, 3.6))
     axis = figure.subplots()
-    for run in sorted(chosen, key=lambda r: (r.summary["model"], r.value)):
-        curve = np.array([np.nan if v is None else v for v in run.summary["per_frame"][key]], dtype=float)
-        axis.plot(curve * _unit(key), label=f"{run.summary['model']} {run.summary['variant']}")
+    for cell in seed_cells(chosen, lambda run: (run.summary["model"], run.value, run.summary["variant"])):
+        _plot_curve(axis, cell, key, label=f"{cell[0].summary['model']} {cell[0].summary['variant']}")
     axis.set_xlabel("frame")
     axis.set_ylabel(label)
     axis.legend(fontsize=7)
@@ -123,7 +180,8 @@ def per_frame_figure(
 
 
 def error_over_time_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
-    """Position and rotation error against the frame, one column per variant, a line per method (test split)."""
+    """Position and rotation error against the frame, one column per variant, a line per method (test split; the
+    mean over seeds with their min-max band)."""
     chosen = [run for run in runs if run.summary["dataset"] == dataset]
     if not chosen:
         return None
@@ -132,13 +190,11 @@ def error_over_time_figure(runs: list[Run], dataset: str, path: Path) -> Path | 
     axes = figure.subplots(2, len(variants), squeeze=False, sharey="row")
     colours = {model: f"C{i}" for i, model in enumerate(sorted({run.summary["model"] for run in chosen}))}
     for column, variant in enumerate(variants):
-        for run in sorted(chosen, key=lambda r: r.summary["model"]):
-            if run.summary["variant"] != variant:
-                continue
-            frames = run.summary["per_frame"]
+        in_variant = [run for run in chosen if run.summary["variant"] == variant]
+        for cell in seed_cells(in_variant, lambda run: run.summary["model"]):
+            model = cell[0].summary["model"]
             for row, key in enumerate(("pos_err", "rot_err_rad")):
-                curve = np.array([np.nan if v is None else v for v in frames[key]], dtype=float)
-                axes[row, column].plot(curve, color=colours[run.summary["model"]], label=run.summary["model"])
+                _plot_curve(axes[row, column], cell, key, color=colours[model], label=model)
         axes[0, column].set_title(variant, fontsize=9)
         axes[1, column].set_xlabel("frame")
         for axis in axes[:, column]:
@@ -177,50 +233,59 @@ def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
 
 
 def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
-    """Table 3 recomputed: 'Yes' when a method's mean test position error varies across a dimension's variants by
-    more than IMPORTANCE_THRESHOLD of its smallest value, 'No' otherwise, 'N/A' without at least two variants."""
+    """Table 3 recomputed: 'Yes' when a method's mean test position error (over seeds too) varies across a
+    dimension's variants by more than IMPORTANCE_THRESHOLD of its smallest value and by more than the widest min-max
+    range over seeds among those variants (none with one seed), 'No' otherwise, 'N/A' without at least two
+    variants."""
     table: dict[str, dict[str, str]] = {}
     for dataset, (parameter, _) in SWEEPS.items():
-        for model, group in _by_model(runs, dataset).items():
-            errors = np.array([run.summary["pos_err"] for run in group], dtype=float)
+        for model, cells in _by_model(runs, dataset).items():
+            spreads = [Spread.of([run.summary["pos_err"] for run in cell]) for cell in cells]
+            errors = np.array([spread.mean for spread in spreads])
             if len(errors) < 2 or not np.all(np.isfinite(errors)):
                 verdict = "N/A"
             else:
-                verdict = "Yes" if (errors.max() - errors.min()) > IMPORTANCE_THRESHOLD * errors.min() else "No"
+                change = errors.max() - errors.min()
+                widest = max(spread.width for spread in spreads)
+                verdict = "Yes" if change > IMPORTANCE_THRESHOLD * errors.min() and change > widest else "No"
             table.setdefault(model, {})[parameter] = verdict
     return table
 
 
 def sensitivity_figure(runs: list[Run], dataset: str, variant: str, axis_key: str, path: Path) -> Path | None:
     """Test error against one observation axis (the other held plain) per model, with the 25-75% band across test
-    trajectories; None unless some model was run at two or more values of the axis."""
+    trajectories and, with several seeds, their min-max as error bars; None unless some model was run at two or more
+    values of the axis."""
     label, _ = OBSERVATION_AXES[axis_key]
     other = next(key for key in OBSERVATION_AXES if key != axis_key)
-    grouped: dict[str, list[Run]] = {}
-    for run in runs:
-        summary = run.summary
-        if (summary["dataset"], summary["variant"]) != (dataset, variant):
-            continue
-        if summary.get(other, OBSERVATION_AXES[other][1]) != OBSERVATION_AXES[other][1]:
-            continue
-        grouped.setdefault(summary["model"], []).append(run)
+    chosen = [
+        run
+        for run in runs
+        if (run.summary["dataset"], run.summary["variant"]) == (dataset, variant)
+        and run.summary.get(other, OBSERVATION_AXES[other][1]) == OBSERVATION_AXES[other][1]
+    ]
     value = lambda run: run.summary.get(axis_key, OBSERVATION_AXES[axis_key][1])  # noqa: E731
-    grouped = {model: sorted(group, key=value) for model, group in sorted(grouped.items()) if len(group) > 1}
+    grouped: dict[str, list[list[Run]]] = {}
+    for cell in seed_cells(chosen, lambda run: (run.summary["model"], value(run))):
+        grouped.setdefault(cell[0].summary["model"], []).append(cell)
+    grouped = {model: cells for model, cells in grouped.items() if len(cells) > 1}
     if not grouped:
         return None
     figure = new_figure(figsize=(8.4, 3.4))
     axes = figure.subplots(1, 2)
     for axis, (key, metric) in zip(axes, PANELS[:2]):
-        for model, group in grouped.items():
-            x = [value(run) for run in group]
-            (line,) = axis.plot(x, [run.summary[key] for run in group], marker="o", label=model)
-            low, high = zip(*(np.nanpercentile(run.per_trajectory[key], [25, 75]) for run in group))
-            axis.fill_between(x, low, high, alpha=0.15, color=line.get_color())
+        for model, cells in grouped.items():
+            _plot_cells(axis, [value(cell[0]) for cell in cells], cells, key, model)
         axis.grid(True, alpha=0.3)
         axis.set_xlabel(label)
         axis.set_ylabel(metric)
     axes[0].legend(fontsize=8)
-    clean = any(run.summary.get("scored_against") == "clean recording" for group in grouped.values() for run in group)
+    clean = any(
+        run.summary.get("scored_against") == "clean recording"
+        for cells in grouped.values()
+        for cell in cells
+        for run in cell
+    )
     against = "the clean recording" if clean else "the recording"
     figure.suptitle(f"{dataset} {variant}: error vs {label.split(' (')[0]} (test, scored against {against})")
     return save_figure(figure, path)

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from contactbench import atomic
 from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError
-from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, draw_all, observed_plainly
+from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, Spread, draw_all, observed_plainly
 from contactbench.evaluation.renders import render_report
 from contactbench.folders import OUTCOME
 
@@ -26,6 +26,7 @@ COLUMNS = [
     ("dataset", "dataset", "{}"),
     ("variant", "variant", "{}"),
     ("split", "split", "{}"),
+    ("seed", "seed", "{}"),  # – in metrics.json written before the seed was recorded
     ("n_trajectories", "tosses", "{}"),
     ("pos_err", "position error (widths)", "{:.4f}"),
     ("rot_err_rad", "rotation error (rad)", "{:.4f}"),
@@ -34,19 +35,21 @@ COLUMNS = [
     ("pairwise_collisions", "pairwise collisions", "{:.2f}"),
 ]
 MILLIMETRES = {"floor_penetration_m", "interbody_penetration_m"}
+# In the grid, beside a model that cannot be told from the row's best at these seeds.
+NOT_SEPARABLE = "†"
 
 
 def collect(root: Path) -> list[dict]:
     rows = []
     for path in sorted(Path(root).rglob("metrics.json")):
         row = json.loads(path.read_text())
-        missing = [key for key, _, _ in COLUMNS if key not in row]
+        missing = [key for key, _, _ in COLUMNS if key not in row and key != "seed"]
         if missing:
             raise ContactbenchError(
                 f"{path}: field {missing[0]!r} missing (not a metrics.json written by evaluate.py/train.py)"
             )
         rows.append(row)
-    return sorted(rows, key=lambda r: (r["dataset"], r["variant"], r["split"], r["model"]))
+    return sorted(rows, key=lambda r: (r["dataset"], r["variant"], r["split"], r["model"], r.get("seed") or 0))
 
 
 def _cell(row: dict, key: str, form: str) -> str:
@@ -62,33 +65,72 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _over_seeds(by_seed: dict, key: str) -> str:
+    """One run's value; over several seeds their mean and [min–max]."""
+    spread = Spread.of([row[key] for row in by_seed.values()])
+    return f"{spread.mean:.3f}" + (f" [{spread.low:.3f}–{spread.high:.3f}]" if spread.n > 1 else "")
+
+
+def _mean(by_seed: dict, key: str) -> float:
+    return Spread.of([row[key] for row in by_seed.values()]).mean
+
+
+def _seeds_cell(test: dict, val: dict | None = None) -> str:
+    """Test position / rotation error (– without a test run), val position error and, with several seeds, their
+    number beside; test and val hold a cell's rows by seed."""
+    text = f"{_over_seeds(test, 'pos_err')} / {_over_seeds(test, 'rot_err_rad')}" if test else "–"
+    beside = [f"val {_mean(val, 'pos_err'):.3f}"] if val else []
+    seeds = len(test) or len(val or {})
+    if seeds > 1:
+        beside.append(f"n={seeds}")
+    return text + (f" ({', '.join(beside)})" if beside else "")
+
+
 def grid_markdown(rows: list[dict]) -> str:
-    """The model x dataset grid: test position / rotation error per variant and model, val position beside it."""
+    """The model x dataset grid: test position / rotation error per variant and model, val position beside it. Runs
+    that differ only by seed are one cell, their mean and [min–max]; in a row with several seeds the lowest mean test
+    position error is bold and NOT_SEPARABLE marks the models whose seeds' range overlaps the best's."""
     models = sorted({row["model"] for row in rows})
     cells: dict[tuple[str, str], dict[str, dict[str, dict]]] = {}
     for row in rows:
-        cells.setdefault((row["dataset"], row["variant"]), {}).setdefault(row["model"], {})[row["split"]] = row
+        splits = cells.setdefault((row["dataset"], row["variant"]), {}).setdefault(row["model"], {})
+        splits.setdefault(row["split"], {})[row.get("seed")] = row  # one row per seed: the last found for it
     lines = [
         "| dataset | variant | " + " | ".join(models) + " |",
         "|---|---|" + "---|" * len(models),
     ]
+    seeded = False
     for (dataset, variant), by_model in sorted(cells.items(), key=lambda item: (item[0][0], _variant_key(item[0][1]))):
+        tests = {
+            model: Spread.of([row["pos_err"] for row in splits["test"].values()])
+            for model, splits in by_model.items()
+            if "test" in splits
+        }
+        best = min(tests, key=lambda model: tests[model].mean) if any(s.n > 1 for s in tests.values()) else None
+        seeded = seeded or best is not None
         entries = []
         for model in models:
             splits = by_model.get(model, {})
-            test, val = splits.get("test"), splits.get("val")
-            text = f"{test['pos_err']:.3f} / {test['rot_err_rad']:.3f}" if test else "–"
-            if val:
-                text += f" (val {val['pos_err']:.3f})"
+            text = _seeds_cell(splits.get("test", {}), splits.get("val"))
+            if model == best:
+                text = f"**{text}**"
+            elif best is not None and model in tests and tests[model].overlaps(tests[best]):
+                text += f" {NOT_SEPARABLE}"
             entries.append(text)
         lines.append(f"| {dataset} | {variant} | " + " | ".join(entries) + " |")
-    return "\n".join(lines) + "\n"
+    note = (
+        "\nOver several seeds a cell is their mean [min–max] (n seeds). In such a row the lowest mean test position "
+        f"error is in bold, and {NOT_SEPARABLE} marks a model whose seeds' test position errors span a range that "
+        "overlaps the best's: not separable from the best at these seeds.\n"
+    )
+    return "\n".join(lines) + "\n" + (note if seeded else "")
 
 
 def sensitivity_markdown(rows: list[dict]) -> str:
     """Test position / rotation error per model at every observation (noise, frame stride) that was run, per
     variant, and one sentence per model and variant: how much its position error grew at the most noise and at the
-    lowest frame rate against its plain run. Empty when every run observed the recordings as they are."""
+    lowest frame rate against its plain run (means over seeds, as in the grid). Empty when every run observed the
+    recordings as they are."""
     tests = [row for row in rows if row["split"] == "test"]
     if all(observed_plainly(row) for row in tests):
         return ""
@@ -103,12 +145,12 @@ def sensitivity_markdown(rows: list[dict]) -> str:
             "| noise (mm) | frame stride | " + " | ".join(models) + " |",
             "|---|---|" + "---|" * len(models),
         ]
-        by_setting = {(row.get("noise_mm", 0.0), row.get("frame_stride", 1), row["model"]): row for row in group}
+        by_setting: dict[tuple, dict] = {}
+        for row in group:
+            setting = (row.get("noise_mm", 0.0), row.get("frame_stride", 1), row["model"])
+            by_setting.setdefault(setting, {})[row.get("seed")] = row
         for noise, stride in settings:
-            cells = []
-            for model in models:
-                row = by_setting.get((noise, stride, model))
-                cells.append(f"{row['pos_err']:.3f} / {row['rot_err_rad']:.3f}" if row else "–")
+            cells = [_seeds_cell(by_setting.get((noise, stride, model), {})) for model in models]
             lines.append(f"| {noise:g} | {stride} | " + " | ".join(cells) + " |")
         lines.append("")
         for model in models:
@@ -119,10 +161,10 @@ def sensitivity_markdown(rows: list[dict]) -> str:
             slowest = max((s for s in settings if s[0] == 0 and (0.0, s[1], model) in by_setting), key=lambda s: s[1])
             parts = []
             if noisiest and noisiest[0] > 0:
-                ratio = by_setting[(noisiest[0], 1, model)]["pos_err"] / plain["pos_err"]
+                ratio = _mean(by_setting[(noisiest[0], 1, model)], "pos_err") / _mean(plain, "pos_err")
                 parts.append(f"{ratio:.2f}x its plain position error at {noisiest[0]:g} mm of noise")
             if slowest[1] > 1:
-                ratio = by_setting[(0.0, slowest[1], model)]["pos_err"] / plain["pos_err"]
+                ratio = _mean(by_setting[(0.0, slowest[1], model)], "pos_err") / _mean(plain, "pos_err")
                 parts.append(f"{ratio:.2f}x at 1/{slowest[1]} of the frame rate")
             if parts:
                 lines.append(f"- {model}: " + "; ".join(parts) + ".")
@@ -200,6 +242,17 @@ def _variant_key(variant: str) -> tuple:
         return (1, 0.0)
 
 
+def importance_sentence(seeded: bool) -> str:
+    """Table 3's rule (figures.importance_table) in a sentence; the seeds' part only when some runs have several."""
+    return (
+        "'Yes' when a method's mean test position error"
+        + (" (mean over seeds)" if seeded else "")
+        + f" changes by more than {IMPORTANCE_THRESHOLD:.0%} of its smallest value across the dimension's variants"
+        + (" and by more than the widest range (min–max) over seeds among those variants" if seeded else "")
+        + "; 'N/A' with fewer than two variants.\n"
+    )
+
+
 def importance_markdown(table: dict[str, dict[str, str]]) -> str:
     """Table 3 over the dimensions that have at least two variants in these runs; says what the others need."""
     dimensions = [parameter for parameter, _ in SWEEPS.values()]
@@ -226,6 +279,7 @@ def write_report(root: Path, renders: bool = True) -> Path:
     if not every_row:
         raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
     rows = [row for row in every_row if observed_plainly(row)]
+    seeded = len({row.get("seed") for row in rows if row["split"] == "test"}) > 1
     sensitivity = sensitivity_markdown(every_row)
     cells = expected_cells(root)
     figures, importance = draw_all(root, root / "figures")
@@ -243,8 +297,7 @@ def write_report(root: Path, renders: bool = True) -> Path:
         "## Figures\n",
         *[f"![{path.stem}](figures/{path.name})\n" for path in figures],
         "## Table 3, recomputed\n",
-        f"'Yes' when a method's mean test position error changes by more than {IMPORTANCE_THRESHOLD:.0%} of its "
-        "smallest value across the dimension's variants; 'N/A' with fewer than two variants.\n",
+        importance_sentence(seeded),
         importance_markdown(importance),
         "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
         *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
@@ -294,11 +347,10 @@ def _html(markdown: str, root: Path) -> str:
         if line.startswith("|---"):
             continue
         if line.startswith("|"):
-            body.append(
-                "<tr>"
-                + "".join(f"<td>{html.escape(cell.strip())}</td>" for cell in line.strip("|").split("|"))
-                + "</tr>"
-            )
+            cells = [
+                re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", html.escape(cell.strip())) for cell in line.strip("|").split("|")
+            ]
+            body.append("<tr>" + "".join(f"<td>{cell}</td>" for cell in cells) + "</tr>")
         elif line.startswith("#"):
             level = len(line) - len(line.lstrip("#"))
             body.append(f"<h{level}>{html.escape(line.lstrip('# '))}</h{level}>")
