@@ -7,7 +7,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from contactbench import runs
-from contactbench.cli import guarded
+from contactbench.cli import check_command_line, guarded
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="diagnose")
@@ -17,4 +17,5 @@ def main(cfg: DictConfig) -> str:
 
 
 if __name__ == "__main__":
+    check_command_line()
     main()

@@ -925,3 +925,18 @@ def test_fuzzed_datasets_read_or_give_one_recordings_error(mutation):
             split = dataset.splits["train"]
             assert split.poses.dtype == np.float64 and split.lengths.dtype == np.int64
             assert np.isfinite(split.poses[split.valid_mask()]).all()
+
+
+@pytest.mark.parametrize(
+    "script, overrides, needle",
+    [
+        ("train.py", ["budget=-1"], "budget=-1: budget is a config group (expected one of paper, quick"),
+        ("evaluate.py", ["-m", "model=1,2"], "model=1,2: model is a config group (expected one of"),
+        ("generate.py", ["variant=["], "cannot parse an override:"),
+    ],
+)
+def test_an_override_hydra_cannot_take_is_one_line_not_a_traceback(tmp_path, script, overrides, needle):
+    result = run_entry_point(script, overrides, tmp_path, timeout=120)
+    assert result.returncode == 2 and needle in result.stderr, result.stderr[-2000:]
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "outputs").exists()  # refused before Hydra made a run folder

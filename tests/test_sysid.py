@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 
 import nevergrad as ng
@@ -11,10 +12,11 @@ import torch
 from test_pipeline import compose_config
 
 from contactbench.config import REPO_ROOT
+from contactbench.metrics import configuration_error
 from contactbench.models.sysid.module import stop_recast_threads
-from contactbench.models.sysid.objective import ConfigurationObjective
+from contactbench.models.sysid.objective import ConfigurationObjective, length_groups
 from contactbench.models.sysid.search_space import SearchSpace
-from contactbench.protocol import make_context
+from contactbench.protocol import make_context, scored_frames, trajectory_means
 from contactbench.recordings import Split, read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts
@@ -80,6 +82,48 @@ def test_unstable_candidate_gets_a_finite_penalty(mujoco_made_cube):
     evaluation = objective([exploding, TRUE_PARAMETERS])
     assert evaluation.unstable.tolist() == [True, False]
     assert evaluation.losses[0] == 123.0
+
+
+def test_objective_scores_what_one_rollout_to_the_longest_toss_scores(mujoco_made_cube):
+    """Each group of alike lengths is simulated only to its last scored frame; the losses are still those of one
+    rollout of the whole batch to its longest toss, to the last bit."""
+    dataset, rollouts = mujoco_made_cube
+    objective = ConfigurationObjective(dataset, "train", 6, rollouts, position_exponent=2)
+    context = objective.context
+    assert len(length_groups(context.lengths - context.n_context)) > 1
+    candidates = [
+        TRUE_PARAMETERS,
+        replace(TRUE_PARAMETERS, floor_friction=0.6),
+        replace(TRUE_PARAMETERS, floor_damping=5.0),
+    ]
+    whole = rollouts.rollout_context(context, candidates)
+    with np.errstate(invalid="ignore"):
+        errors = configuration_error(objective.truth[:, : context.horizon], whole.poses, objective.widths, 2)
+        expected = trajectory_means(errors, scored_frames(context.lengths, context.horizon, 6)).mean(axis=-1)
+    np.testing.assert_array_equal(objective(candidates).losses, expected)
+
+
+def test_a_rollout_that_does_not_come_back_in_time_fails_every_candidate(mujoco_made_cube):
+    dataset, _ = mujoco_made_cube
+    rollouts = MujocoRollouts(dataset, nthread=1)
+    candidates = [TRUE_PARAMETERS, replace(TRUE_PARAMETERS, floor_friction=0.6)]
+    expected = ConfigurationObjective(dataset, "train", 6, rollouts)(candidates).losses
+    simulate, release, calls = rollouts.simulate, threading.Event(), []
+
+    def first_call_hangs(*args):  # as a native call that does not return would
+        calls.append(args)
+        if len(calls) == 1:
+            release.wait(timeout=60)
+        return simulate(*args)
+
+    rollouts.simulate = first_call_hangs
+    objective = ConfigurationObjective(dataset, "train", 6, rollouts, unstable_penalty=123.0, timeout_s=0.5)
+    failed = objective(candidates)
+    assert failed.unstable.all() and (failed.losses == 123.0).all()
+    assert len(calls) == 1  # no later group was started behind the hung one
+    again = objective(candidates)  # a fresh executor and fresh data
+    release.set()
+    np.testing.assert_array_equal(again.losses, expected)
 
 
 def test_ngopt_runs_the_whole_quick_budget(tmp_path):

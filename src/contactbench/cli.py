@@ -17,6 +17,7 @@ from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
 from contactbench import atomic, settings
+from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.folders import OUTCOME, FolderRefused
 
@@ -72,6 +73,34 @@ def quiet_third_party() -> None:
     under Slurm uses it; one started by hand on a Slurm login node is meant to run there)."""
     logging.getLogger("pytorch_lightning.utilities.rank_zero").addFilter(_NoAdvert())
     warnings.filterwarnings("ignore", message="The `srun` command is available on your system")
+
+
+def check_command_line(argv: list[str] | None = None) -> None:
+    """Hydra answers an override it cannot parse, or a number given to a config group (budget=-1), with a
+    traceback: one line naming the override and what was expected instead (exit 2). The rest is Hydra's to check."""
+    from hydra._internal.utils import get_args_parser
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import Glob
+    from hydra.errors import OverrideParseException
+
+    arguments, _ = get_args_parser().parse_known_args(sys.argv[1:] if argv is None else argv)
+    try:
+        overrides = OverridesParser.create().parse_overrides(arguments.overrides)
+    except OverrideParseException as error:
+        _refuse(f"cannot parse an override: {str(error).splitlines()[0]}")
+    for override in overrides:
+        group = CONFIG_DIR / override.key_or_group
+        if not group.is_dir() or override.is_delete() or isinstance(override.value(), Glob):
+            continue
+        values = list(override.sweep_iterator()) if override.is_sweep_override() else [override.value()]
+        if not all(isinstance(value, (str, list)) for value in values):
+            options = ", ".join(sorted(path.stem for path in group.glob("*.yaml")))
+            _refuse(f"{override.input_line}: {override.key_or_group} is a config group (expected one of {options})")
+
+
+def _refuse(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(2)
 
 
 def guarded(main):

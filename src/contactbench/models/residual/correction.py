@@ -69,10 +69,12 @@ def _to_body(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return rotations.rotate(rotations.conjugate(q), v)
 
 
-def _point_velocity(qpos: np.ndarray, qvel: np.ndarray, offset_world: np.ndarray) -> np.ndarray:
-    """World velocity [..., V, 3] of points at world offsets [..., V, 3] from the body origin."""
-    omega = rotations.rotate(qpos[..., 3:], qvel[..., 3:])
-    return qvel[..., None, :3] + np.cross(omega[..., None, :], offset_world)
+def _vertical_velocities(qpos: np.ndarray, qvel: np.ndarray, offset_world: np.ndarray) -> np.ndarray:
+    """World vertical velocity [..., M, V] of points at world offsets [..., V, 3] from the body origin, for M body
+    velocities qvel [..., M, 6] at once (one rotation for all of them; only the z of v + w x r is ever used)."""
+    omega = rotations.rotate(qpos[..., None, 3:], qvel[..., 3:])  # [..., M, 3]
+    turning = omega[..., None, 0] * offset_world[..., None, :, 1] - omega[..., None, 1] * offset_world[..., None, :, 0]
+    return qvel[..., None, 2] + turning
 
 
 def features(bodies: Bodies, qpos0: np.ndarray, qvel0: np.ndarray, qpos1: np.ndarray, qvel1: np.ndarray) -> np.ndarray:
@@ -81,12 +83,15 @@ def features(bodies: Bodies, qpos0: np.ndarray, qvel0: np.ndarray, qpos1: np.nda
     the lowest vertices (height, vertical velocity, mesh-frame position) and the nearest other body."""
     q0 = qpos0[..., 3:]
     gravity = np.broadcast_to(bodies.gravity / np.linalg.norm(bodies.gravity), q0.shape[:-1] + (3,))
+    # Gravity, velocity and velocity change turned in one pass: a rollout calls this every frame, where numpy's
+    # per-call cost outweighs the arithmetic (the rotation is element-wise: the same numbers as one by one).
+    turned = _to_body(q0[..., None, :], np.stack([gravity, qvel0[..., :3], qvel1[..., :3] - qvel0[..., :3]], axis=-2))
     parts = [
-        _to_body(q0, gravity),
+        turned[..., 0, :],
         qpos0[..., 2:3] - bodies.floor_z,
-        _to_body(q0, qvel0[..., :3]),
+        turned[..., 1, :],
         qvel0[..., 3:],
-        _to_body(q0, qvel1[..., :3] - qvel0[..., :3]),
+        turned[..., 2, :],
         qvel1[..., 3:] - qvel0[..., 3:],
         _lowest_vertices(bodies, qpos0, qvel0),
         _nearest_neighbour(qpos0, qvel0),
@@ -100,10 +105,10 @@ def _lowest_vertices(bodies: Bodies, qpos: np.ndarray, qvel: np.ndarray) -> np.n
         placed = world_vertices(qpos[..., k, :], vertices)  # [..., V, 3]
         order = np.argsort(placed[..., 2], axis=-1)[..., :LOWEST_VERTICES]
         lowest = np.take_along_axis(placed, order[..., None], axis=-2)
-        velocity = _point_velocity(qpos[..., k, :], qvel[..., k, :], lowest - qpos[..., k, None, :3])
+        vertical = _vertical_velocities(qpos[..., k, :], qvel[..., k, None, :], lowest - qpos[..., k, None, :3])
         out.append(
             np.concatenate(
-                [lowest[..., 2] - bodies.floor_z, velocity[..., 2], vertices[order].reshape(*order.shape[:-1], -1)],
+                [lowest[..., 2] - bodies.floor_z, vertical[..., 0, :], vertices[order].reshape(*order.shape[:-1], -1)],
                 axis=-1,
             )
         )
@@ -159,8 +164,9 @@ def allowed_fraction(
         placed = world_vertices(qpos1[..., k, :], vertices)
         offset = placed - qpos1[..., k, None, :3]
         near = placed[..., 2] - bodies.floor_z < contact_margin
-        rising = _point_velocity(qpos1[..., k, :], qvel1[..., k, :], offset)[..., 2]
-        pushed = _point_velocity(qpos1[..., k, :], change[..., k, :], offset)[..., 2]
+        velocities = np.stack(np.broadcast_arrays(qvel1[..., k, :], change[..., k, :]), axis=-2)
+        vertical = _vertical_velocities(qpos1[..., k, :], velocities, offset)
+        rising, pushed = vertical[..., 0, :], vertical[..., 1, :]
         # rising + f * pushed >= min(rising, 0): at rest or sinking, no push down; rising, at most to a stop.
         with np.errstate(divide="ignore", invalid="ignore"):
             limit = np.where(near & (pushed < 0), (np.minimum(rising, 0.0) - rising) / pushed, 1.0)
