@@ -146,6 +146,28 @@ def test_a_setting_chosen_on_val_is_the_best_candidate_and_evaluate_scores_it(tm
     assert document["pos_err"] == pytest.approx(val_pos_err)
 
 
+def test_last_checkpoint_is_the_last_validation_not_the_best(tmp_path):
+    """A killed run resumes from last.ckpt: written at every validation, not only when the monitored score improves
+    (here the monitor, train/seconds, is lowest at the first validation)."""
+    overrides = [
+        "dataset=contactnets_cube",
+        "model=gnn",
+        "budget=smoke",
+        "~model.choose_on_val",
+        "model.budgets.smoke.max_steps=30",
+        "model.budgets.smoke.val_check_interval=10",
+        "model.callbacks.checkpoint.monitor=train/seconds",
+    ]
+    run_dir = tmp_path / "train-run"
+    runs.train(compose_config("train", overrides, tmp_path), run_dir)
+    step = {
+        name: torch.load(run_dir / "checkpoints" / f"{name}.ckpt", weights_only=True)["global_step"]
+        for name in ("best", "last")
+    }
+    assert step == {"best": 10, "last": 30}
+    assert json.loads((run_dir / "fitted.json").read_text())["checkpoint"] == "best.ckpt"
+
+
 def test_sysid_process_exits_by_itself(tmp_path):
     """nevergrad's recast optimisers leave threads behind; train.py must still exit on its own."""
     result = run_entry_point(
