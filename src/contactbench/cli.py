@@ -68,10 +68,14 @@ class _NoAdvert(logging.Filter):
         return not str(record.msg).startswith("💡 Tip")
 
 
+NO_ADVERT = _NoAdvert()
+
+
 def quiet_third_party() -> None:
     """Drop Lightning's litlogger advert on every fit, and its hint to use srun wherever Slurm is installed (a job
-    under Slurm uses it; one started by hand on a Slurm login node is meant to run there)."""
-    logging.getLogger("pytorch_lightning.utilities.rank_zero").addFilter(_NoAdvert())
+    under Slurm uses it; one started by hand on a Slurm login node is meant to run there). Once per process, however
+    many jobs of a sweep it runs (addFilter and filterwarnings keep one copy of the same filter)."""
+    logging.getLogger("pytorch_lightning.utilities.rank_zero").addFilter(NO_ADVERT)
     warnings.filterwarnings("ignore", message="The `srun` command is available on your system")
 
 
