@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from conftest import falling_cubes
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import get_class, get_object, instantiate
@@ -18,7 +19,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from contactbench import runs
 from contactbench.config import CONFIG_DIR
-from contactbench.models.analytical import preset_parameters
 
 ENTRIES = ["train", "evaluate", "generate", "diagnose"]
 
@@ -115,7 +115,7 @@ def check_instantiable(cfg: DictConfig, tmp_path: Path, where: str) -> None:
     if model is not None:
         if model.kind == "analytical":
             contact_model = instantiate(model.contact_model)
-            preset_parameters(contact_model.preset, 1)
+            contact_model.contact_parameters(falling_cubes(1, 8))  # its preset names parameters its engine has
         else:
             assert model.kind == "lightning", where
             callbacks = [runs._callback(node, tmp_path / "checkpoints") for node in model.get("callbacks", {}).values()]

@@ -6,12 +6,55 @@ import json
 import re
 import shutil
 
+import numpy as np
+from matplotlib.colors import to_hex
 from test_pipeline import smoke_train_sweep
 
+from contactbench.evaluation import figures, renders
+from contactbench.evaluation.figures import Run, error_over_time_figure, model_colour, sweep_figure, titles
 from contactbench.evaluation.report import expected_cells, write_report
 
 
-def test_tiny_matrix_multirun_then_report(tmp_path):
+def saved_figures(monkeypatch) -> list:
+    """Every figure the report saves (figures and renders), kept for a look after it was written."""
+    kept = []
+
+    def saving(figure, path):
+        kept.append(figure)
+        return original(figure, path)
+
+    original = figures.save_figure
+    monkeypatch.setattr(figures, "save_figure", saving)
+    monkeypatch.setattr(renders, "save_figure", saving)
+    return kept
+
+
+def titles_outside(figure) -> list[str]:
+    """The titles of a figure, as drawn, that reach past its edges (by more than a pixel)."""
+    renderer = figure.canvas.get_renderer()
+    figure.draw(renderer)
+    edges = figure.bbox
+    return [
+        title.get_text()
+        for title in titles(figure)
+        if (box := title.get_window_extent(renderer)).x0 < edges.x0 - 1
+        or box.y0 < edges.y0 - 1
+        or box.x1 > edges.x1 + 1
+        or box.y1 > edges.y1 + 1
+    ]
+
+
+def line_colours(figure) -> dict[str, str]:
+    """Legend label -> colour of the lines drawn with a label, over every axes of the figure."""
+    return {
+        line.get_label(): to_hex(line.get_color())
+        for axis in figure.axes
+        for line in axis.get_lines()
+        if not line.get_label().startswith("_")
+    }
+
+
+def test_tiny_matrix_multirun_then_report(tmp_path, monkeypatch):
     result = smoke_train_sweep(
         ["model=mujoco_default,sysid", "variant=frictioncubes_0,frictioncubes_1"], tmp_path / "sweep", tmp_path
     )
@@ -19,8 +62,21 @@ def test_tiny_matrix_multirun_then_report(tmp_path):
     documents = [json.loads(path.read_text()) for path in (tmp_path / "sweep").rglob("metrics.json")]
     values = {document["variant_values"]["friction"] for document in documents}
     assert values == {0.0, 1.0}  # numbers in metrics.json, not parsed back out of folder names
+    drawn = saved_figures(monkeypatch)
     report = write_report(tmp_path / "sweep")
     text = report.read_text()
+    # every figure and render: no title clipped, and each model in the same colour wherever it is drawn
+    assert len(drawn) == 4 and not [title for figure in drawn for title in titles_outside(figure)]
+    for figure in drawn:
+        for label, colour in line_colours(figure).items():
+            if label in ("mujoco_default", "sysid"):
+                assert colour == to_hex(model_colour(label)), (label, titles(figure)[0].get_text())
+    # renders as small multiples: per toss a panel for the truth and one per model, titled in the model's colour
+    (poses,) = [figure for figure in drawn if titles(figure)[0].get_text().startswith("Final poses")]
+    panel_titles = [axis.title.get_text() for axis in poses.axes]
+    assert len(poses.axes) == 3 * 3 and sum(title.endswith("ground truth") for title in panel_titles) == 3
+    sysid_panels = [axis for axis in poses.axes if axis.title.get_text().startswith("sysid: ")]
+    assert len(sysid_panels) == 3 and to_hex(sysid_panels[0].title.get_color()) == to_hex(model_colour("sysid"))
     # 2 models x 2 variants x (val, test) rows
     assert len(re.findall(r"^\| (mujoco_default|sysid) \| frictioncubes", text, flags=re.M)) == 8
     for figure in ("frictioncubes.png", "fig7c_lowest_vertex.png"):
@@ -58,3 +114,64 @@ def test_the_report_accounts_for_every_job_the_sweep_asked_for(tmp_path):
     assert skipped["status"] == "skipped" and "single-body" in skipped["why"]
     text = write_report(sweep, renders=False).read_text()
     assert "4 jobs asked for: 2 done, 1 skipped, 0 failed, 0 unfinished, 1 missing." in text
+
+
+def toss_run(model: str, running: list[int], pos_err: list[float]) -> Run:
+    """A test run of 8 tosses whose per-frame error curve is pos_err, with running[t] tosses still scored at t."""
+    per_frame = {"pos_err": pos_err, "rot_err_rad": pos_err, "n_trajectories": running}
+    summary = {
+        "model": model,
+        "dataset": "contactnets_cube",
+        "variant": "recorded",
+        "split": "test",
+        "seed": 0,
+        "n_trajectories": 8,
+        "pos_err": float(np.mean(pos_err)),
+        "per_frame": per_frame,
+    }
+    return Run(summary, {"pos_err": np.array(pos_err)})
+
+
+def test_error_over_time_greys_out_frames_with_under_a_quarter_of_the_tosses(tmp_path, monkeypatch):
+    drawn = saved_figures(monkeypatch)
+    running = [8, 8, 8, 6, 4, 1, 1, 1]  # frames 5-7: fewer than a quarter of 8 tosses
+    error = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 9.0, 0.1]  # the swing at the end is a mean over one toss
+    runs = [toss_run("sysid", running, error), toss_run("my_own_model", running, error[::-1])]
+    assert error_over_time_figure(runs, "contactnets_cube", tmp_path / "error.png").stat().st_size > 10_000
+    (figure,) = drawn
+    position = figure.axes[0]
+    coloured = [line for line in position.get_lines() if line.get_label() == "sysid"]
+    grey = [line for line in position.get_lines() if to_hex(line.get_color()) == to_hex("0.6")]
+    assert np.isfinite(coloured[0].get_ydata()).nonzero()[0].tolist() == [0, 1, 2, 3, 4]
+    assert np.isfinite(grey[0].get_ydata()).nonzero()[0].tolist() == [4, 5, 6, 7]  # from the last drawn on
+    assert "< 25% of tosses running" in [text.get_text() for text in position.get_legend().get_texts()]
+    assert "grey where fewer than 25%" in figure._suptitle.get_text().replace("\n", " ")
+    assert not titles_outside(figure)  # the long title is wrapped, not cut off
+    # a model of one's own gets one colour that is nobody else's, the same in every figure
+    assert to_hex(coloured[0].get_color()) == to_hex(model_colour("sysid"))
+    assert model_colour("my_own_model") == model_colour("my_own_model") not in figures.MODEL_COLOURS.values()
+
+
+def test_sweep_figure_titles_fit_and_models_keep_their_colours(tmp_path, monkeypatch):
+    drawn = saved_figures(monkeypatch)
+    runs = [
+        Run(
+            {
+                "model": model,
+                "dataset": "frictioncubes",
+                "variant": f"friction={mu}",
+                "variant_values": {"friction": mu},
+                "pos_err": 0.1 + mu,
+                "rot_err_rad": 0.2,
+                "floor_penetration_m": 1e-3,
+                "seed": 0,
+            },
+            {"pos_err": np.full(4, 0.1 + mu), "rot_err_rad": np.full(4, 0.2), "floor_penetration_m": np.full(4, 1e-3)},
+        )
+        for model in ("hybrid", "gnn")
+        for mu in (0.0, 0.5, 1.0)
+    ]
+    sweep_figure(runs, "frictioncubes", tmp_path / "sweep.png")
+    (figure,) = drawn
+    assert not titles_outside(figure)
+    assert line_colours(figure) == {"hybrid": to_hex("tab:brown"), "gnn": to_hex("tab:red")}

@@ -222,11 +222,12 @@ def _score_and_write(
 
 
 def write_scene(model: ContactModel, dataset: Recordings, output_dir: Path, logger) -> None:
-    """A MuJoCo-based model's fitted scene as MJCF (scene.xml: open it in MuJoCo's viewer), kept as an artifact."""
-    xml = model.scene_xml(dataset)
-    if xml is not None:
-        atomic.write_text(output_dir / "scene.xml", xml)
-        tracking.log_artifacts(logger, [output_dir / "scene.xml"])
+    """An engine-based model's fitted scene in its engine's own format (scene.xml for MuJoCo's viewer, URDF for
+    PyBullet, SDFormat for Drake, with their meshes), kept as artifacts."""
+    files = model.scene_files(dataset)
+    for relative, text in files.items():
+        atomic.write_text(output_dir / relative, text)
+    tracking.log_artifacts(logger, [output_dir / relative for relative in files])
 
 
 def train(cfg: DictConfig, output_dir: Path) -> float:

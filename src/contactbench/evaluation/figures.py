@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import csv
 import json
+import textwrap
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 # dataset -> (varied parameter, figure title as in the paper)
 SWEEPS = {
@@ -29,6 +32,34 @@ MILLIMETRES = {"floor_penetration_m", "interbody_penetration_m", "min_vertex_hei
 
 def _unit(key: str) -> float:
     return 1e3 if key in MILLIMETRES else 1.0
+
+
+# One colour per model in every figure and render, whichever models a sweep holds; grey is the ground truth's.
+MODEL_COLOURS = {
+    "mujoco_default": "tab:blue",
+    "mujoco_fixed": "tab:orange",
+    "sysid": "tab:green",
+    "gnn": "tab:red",
+    "gnn_paper": "tab:purple",
+    "hybrid": "tab:brown",
+    "residual": "tab:pink",
+    "bullet_default": "tab:olive",
+    "sysid_bullet": "tab:cyan",
+    "drake_default": "navy",
+    "sysid_drake": "darkgoldenrod",
+}
+TRUTH_COLOUR = "0.6"
+# Other models (a user's own): a colour picked by the name's checksum, the same in every figure and every run.
+EXTRA_COLOURS = ("teal", "crimson", "indigo", "darkkhaki", "sienna", "slateblue", "seagreen", "orchid")
+
+
+def model_colour(model: str) -> str:
+    return MODEL_COLOURS.get(model) or EXTRA_COLOURS[zlib.crc32(model.encode()) % len(EXTRA_COLOURS)]
+
+
+# The error-over-time curves are means over the tosses still running at a frame; under this fraction of the split's
+# tosses a mean is of a few tosses and swings, so it is drawn faint and grey instead.
+RUNNING_FRACTION = 0.25
 
 
 # Table 3's rule: a dimension matters for a method when its mean test position error moves by more than this
@@ -118,7 +149,7 @@ def _plot_cells(axis, x: list[float], cells: list[list[Run]], key: str, label: s
     unit = _unit(key)
     spreads = [Spread.of([run.summary[key] * unit for run in cell]) for cell in cells]
     means = np.array([spread.mean for spread in spreads])
-    (line,) = axis.plot(x, means, marker="o", label=label)
+    (line,) = axis.plot(x, means, marker="o", label=label, color=model_colour(label))
     tosses = [np.concatenate([run.per_trajectory[key] for run in cell]) for cell in cells]
     low, high = zip(*(np.nanpercentile(values, [25, 75]) * unit for values in tosses))
     axis.fill_between(x, low, high, alpha=0.15, color=line.get_color())
@@ -128,15 +159,39 @@ def _plot_cells(axis, x: list[float], cells: list[list[Run]], key: str, label: s
         axis.errorbar(x, means, yerr=reach, fmt="none", capsize=3, color=line.get_color())
 
 
-def _plot_curve(axis, cell: list[Run], key: str, **style) -> None:
-    """A per-frame curve: the mean over the cell's seeds, and with several seeds a band from their min to their max."""
-    curves = np.array(
-        [[np.nan if v is None else v for v in run.summary["per_frame"][key]] for run in cell], dtype=float
-    ) * _unit(key)
-    (line,) = axis.plot(curves.mean(axis=0), **style)
+def _per_frame(run: Run, key: str) -> np.ndarray:
+    return np.array([np.nan if v is None else v for v in run.summary["per_frame"][key]], dtype=float)
+
+
+def running_enough(cell: list[Run]) -> np.ndarray:
+    """Per frame, whether at least RUNNING_FRACTION of the tosses are still running in every seed of the cell (all
+    frames where metrics.json does not count them)."""
+    enough = None
+    for run in cell:
+        counts = run.summary["per_frame"].get("n_trajectories")
+        if counts is None:
+            return np.ones(len(_per_frame(run, "pos_err")), dtype=bool)
+        counts = np.array([0 if c is None else c for c in counts], dtype=float)
+        ours = counts >= RUNNING_FRACTION * max(run.summary["n_trajectories"], 1)
+        enough = ours if enough is None else enough & ours
+    return enough
+
+
+def _plot_curve(axis, cell: list[Run], key: str, only: np.ndarray | None = None, **style) -> None:
+    """A per-frame curve: the mean over the cell's seeds, and with several seeds a band from their min to their max;
+    with `only`, the frames outside it as a faint grey line beside the curve."""
+    curves = np.array([_per_frame(run, key) for run in cell]) * _unit(key)
+    mean = curves.mean(axis=0)
+    frames = np.arange(curves.shape[1])
+    shown = np.ones(len(mean), dtype=bool) if only is None else only
+    (line,) = axis.plot(frames, np.where(shown, mean, np.nan), **style)
+    if not shown.all():
+        faint = ~shown
+        faint[:-1] |= faint[1:]  # from the last frame drawn on, so the grey line continues the curve
+        axis.plot(frames, np.where(faint, mean, np.nan), color=TRUTH_COLOUR, linewidth=0.8, alpha=0.6)
     if len(cell) > 1:
-        frames = np.arange(curves.shape[1])
-        axis.fill_between(frames, curves.min(axis=0), curves.max(axis=0), alpha=0.2, color=line.get_color())
+        low, high = np.where(shown, curves.min(axis=0), np.nan), np.where(shown, curves.max(axis=0), np.nan)
+        axis.fill_between(frames, low, high, alpha=0.2, color=line.get_color())
 
 
 def sweep_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
@@ -170,8 +225,11 @@ def per_frame_figure(
         return None
     figure = new_figure(figsize=(6, 3.6))
     axis = figure.subplots()
+    variants = sorted({run.summary["variant"] for run in chosen}, key=_variant_order)
     for cell in seed_cells(chosen, lambda run: (run.summary["model"], run.value, run.summary["variant"])):
-        _plot_curve(axis, cell, key, label=f"{cell[0].summary['model']} {cell[0].summary['variant']}")
+        model, variant = cell[0].summary["model"], cell[0].summary["variant"]
+        dashes = ("-", "--", ":", "-.")[variants.index(variant) % 4]  # colour says the model, the dashes the variant
+        _plot_curve(axis, cell, key, label=f"{model} {variant}", color=model_colour(model), linestyle=dashes)
     axis.set_xlabel("frame")
     axis.set_ylabel(label)
     axis.legend(fontsize=7)
@@ -181,28 +239,38 @@ def per_frame_figure(
 
 def error_over_time_figure(runs: list[Run], dataset: str, path: Path) -> Path | None:
     """Position and rotation error against the frame, one column per variant, a line per method (test split; the
-    mean over seeds with their min-max band)."""
+    mean over seeds with their min-max band), drawn only where at least RUNNING_FRACTION of the tosses still run
+    (past that, a faint grey line)."""
     chosen = [run for run in runs if run.summary["dataset"] == dataset]
     if not chosen:
         return None
     variants = sorted({run.summary["variant"] for run in chosen}, key=_variant_order)
-    figure = new_figure(figsize=(3.2 * len(variants) + 1.0, 5.6))
+    figure = new_figure(figsize=(3.2 * len(variants) + 1.6, 6.0))
     axes = figure.subplots(2, len(variants), squeeze=False, sharey="row")
-    colours = {model: f"C{i}" for i, model in enumerate(sorted({run.summary["model"] for run in chosen}))}
+    greyed = False
     for column, variant in enumerate(variants):
         in_variant = [run for run in chosen if run.summary["variant"] == variant]
         for cell in seed_cells(in_variant, lambda run: run.summary["model"]):
             model = cell[0].summary["model"]
+            enough = running_enough(cell)
+            greyed = greyed or not enough[np.isfinite(_per_frame(cell[0], "pos_err"))].all()
             for row, key in enumerate(("pos_err", "rot_err_rad")):
-                _plot_curve(axes[row, column], cell, key, color=colours[model], label=model)
+                _plot_curve(axes[row, column], cell, key, only=enough, color=model_colour(model), label=model)
         axes[0, column].set_title(variant, fontsize=9)
         axes[1, column].set_xlabel("frame")
         for axis in axes[:, column]:
             axis.grid(True, alpha=0.3)
     axes[0, 0].set_ylabel("position error (widths)")
     axes[1, 0].set_ylabel("rotation error (rad)")
-    axes[0, -1].legend(fontsize=7)
-    figure.suptitle(f"Error over time, {dataset} (test; mean over the tosses still running at each frame)")
+    handles, labels = axes[0, -1].get_legend_handles_labels()
+    if greyed:
+        handles.append(Line2D([], [], color=TRUTH_COLOUR, linewidth=0.8, alpha=0.6))
+        labels.append(f"< {RUNNING_FRACTION:.0%} of tosses running")
+    axes[0, -1].legend(handles, labels, fontsize=7)
+    figure.suptitle(
+        f"Error over time, {dataset} (test): the mean over the tosses still running at each frame, "
+        f"grey where fewer than {RUNNING_FRACTION:.0%} of them are"
+    )
     return save_figure(figure, path)
 
 
@@ -328,15 +396,43 @@ def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str,
 
 def new_figure(**kwargs) -> Figure:
     """A figure drawn by Agg into files only. Made outside pyplot, so no backend is selected, no display is needed
-    (CI, a cluster node) and nothing global changes: the figure is freed like any object."""
-    figure = Figure(**kwargs)
+    (CI, a cluster node) and nothing global changes: the figure is freed like any object. Constrained layout makes
+    room for every title, label and legend inside the figure."""
+    figure = Figure(layout="constrained", **kwargs)
     FigureCanvasAgg(figure)
     return figure
 
 
+def titles(figure: Figure) -> list:
+    """The figure's title and every axes' titles that hold text."""
+    found = [figure._suptitle] + [
+        title for axis in figure.axes for title in (axis.title, axis._left_title, axis._right_title)
+    ]
+    return [title for title in found if title is not None and title.get_text()]
+
+
+def wrap_titles(figure: Figure) -> None:
+    """Break every title wider than what it stands over (the figure, or its axes) into lines that fit: layout can
+    move a title down but cannot make a long one narrower."""
+    renderer = figure.canvas.get_renderer()
+    for title in titles(figure):
+        room = figure.bbox.width if title is figure._suptitle else title.axes.bbox.width
+        room = min(room, figure.bbox.width) * 0.96
+        text = title.get_text().replace("\n", " ")
+        width = title.get_window_extent(renderer).width
+        if width <= room:
+            continue
+        columns = max(10, int(len(text) * room / width))
+        while columns > 10:
+            title.set_text("\n".join(textwrap.wrap(text, columns)))
+            if title.get_window_extent(renderer).width <= room:
+                break
+            columns -= 2
+
+
 def save_figure(figure: Figure, path: Path) -> Path:
-    """Write a figure atomically, as PNG (path) and as SVG beside it (for papers)."""
-    figure.tight_layout()
+    """Write a figure atomically, as PNG (path) and as SVG beside it (for papers), its titles wrapped to fit."""
+    wrap_titles(figure)
     path.parent.mkdir(parents=True, exist_ok=True)
     for target in (path, path.with_suffix(".svg")):
         partial = target.with_name(f".{target.name}.partial{target.suffix}")
@@ -355,8 +451,8 @@ def learning_curve_figure(curves: dict[tuple[str, str], list[tuple[float, float,
             if curve_dataset != dataset or not points:
                 continue
             seconds, position, rotation = np.array(points).T
-            axes[0, column].plot(seconds, position, marker="o", label=model)
-            axes[1, column].plot(seconds, rotation, marker="o", label=model)
+            axes[0, column].plot(seconds, position, marker="o", label=model, color=model_colour(model))
+            axes[1, column].plot(seconds, rotation, marker="o", label=model, color=model_colour(model))
         axes[0, column].set_title(dataset)
         axes[0, column].set_ylabel("val position error (widths)")
         axes[1, column].set_ylabel("val rotation error (rad)")

@@ -14,18 +14,17 @@ from pathlib import Path
 import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.colors import to_rgb
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from omegaconf import OmegaConf
 
 from contactbench import restore
-from contactbench.evaluation.figures import new_figure, observed_plainly, save_figure
+from contactbench.evaluation.figures import TRUTH_COLOUR, model_colour, new_figure, observed_plainly, save_figure
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 
 log = logging.getLogger(__name__)
-COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
 
 @dataclass
@@ -61,7 +60,7 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
 LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 
 
-def _draw(axis, poses: np.ndarray, meshes: list[Mesh], colour: str, alpha: float, label: str | None) -> None:
+def _draw(axis, poses: np.ndarray, meshes: list[Mesh], colour: str, alpha: float = 1.0) -> None:
     """Solid bodies, each face shaded by its angle to a fixed light (coplanar triangles alike: no diagonals)."""
     base = np.array(to_rgb(colour))
     for k, mesh in enumerate(meshes):
@@ -73,9 +72,29 @@ def _draw(axis, poses: np.ndarray, meshes: list[Mesh], colour: str, alpha: float
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         shade = 0.45 + 0.55 * np.clip(normals @ LIGHT, 0.0, 1.0)
         colours = np.concatenate([base[None] * shade[:, None], np.full((len(shade), 1), alpha)], axis=1)
-        faces = Poly3DCollection(list(triangles), facecolors=colours, edgecolor="none", linewidths=0)
-        faces.set_label(label if k == 0 else None)
-        axis.add_collection3d(faces)
+        axis.add_collection3d(Poly3DCollection(list(triangles), facecolors=colours, edgecolor="none", linewidths=0))
+
+
+def _outline(axis, poses: np.ndarray, meshes: list[Mesh]) -> None:
+    """The ground truth's edges only, thin and grey, so a model's panel shows where the bodies should be without
+    hiding the model's own."""
+    for k, mesh in enumerate(meshes):
+        if np.isfinite(poses[k]).all():
+            corners = world_vertices(poses[k], mesh.vertices)
+            segments = [corners[[a, b]] for a, b in _feature_edges(mesh)]
+            axis.add_collection3d(Line3DCollection(segments, colors=TRUTH_COLOUR, linewidths=0.6))
+
+
+def _feature_edges(mesh: Mesh) -> list[tuple[int, int]]:
+    """The mesh's edges between faces that are not coplanar (a cube's 12, not its faces' diagonals)."""
+    triangles = mesh.vertices[mesh.faces]
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    beside: dict[tuple[int, int], list[int]] = {}
+    for face, (a, b, c) in enumerate(mesh.faces):
+        for edge in ((a, b), (b, c), (c, a)):
+            beside.setdefault(tuple(sorted(map(int, edge))), []).append(face)
+    return [edge for edge, faces in beside.items() if len(faces) != 2 or normals[faces[0]] @ normals[faces[1]] < 0.999]
 
 
 def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
@@ -106,19 +125,26 @@ def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
 
 
 def final_poses_figure(rollouts: Rollouts, path: Path) -> Path:
-    """Figs. 4 and 6 of the paper: the last frame of ground truth (grey) and of every method, per toss."""
-    count = len(rollouts.truth)
-    figure = new_figure(figsize=(4.2 * count, 4.0))
+    """Figs. 4 and 6 of the paper as small multiples: a row per toss, its last frame in a panel of its own for the
+    ground truth (grey) and for each method (in its colour, the truth's outline beside it, the mean distance of its
+    bodies from the truth's in the panel's title)."""
+    count, panels = len(rollouts.truth), 1 + len(rollouts.predicted)
+    figure = new_figure(figsize=(2.6 * panels, 2.7 * count + 0.5))
     for n in range(count):
-        axis = figure.add_subplot(1, count, n + 1, projection="3d")
         last = int(rollouts.lengths[n]) - 1
-        _draw(axis, rollouts.truth[n, last], rollouts.meshes, "0.6", 0.5, "ground truth")
-        for colour, (model, poses) in zip(COLOURS, rollouts.predicted.items()):
-            _draw(axis, poses[n, last], rollouts.meshes, colour, 0.35, model)
+        truth = rollouts.truth[n, last]
+        axis = figure.add_subplot(count, panels, n * panels + 1, projection="3d")
+        _draw(axis, truth, rollouts.meshes, TRUTH_COLOUR)
         _frame_axes(axis, rollouts, n)
-        axis.set_title(f"test toss {n}", fontsize=9)
-    figure.axes[0].legend(fontsize=7, loc="upper left")
-    figure.suptitle(f"Final poses: {rollouts.label}")
+        axis.set_title(f"toss {n}: ground truth", fontsize=9)
+        for column, (model, poses) in enumerate(rollouts.predicted.items(), start=2):
+            axis = figure.add_subplot(count, panels, n * panels + column, projection="3d")
+            _outline(axis, truth, rollouts.meshes)
+            _draw(axis, poses[n, last], rollouts.meshes, model_colour(model))
+            _frame_axes(axis, rollouts, n)
+            off = np.nanmean(np.linalg.norm(poses[n, last, :, :3] - truth[:, :3], axis=-1)) * 100
+            axis.set_title(f"{model}: {off:.1f} cm off", fontsize=9, color=model_colour(model))
+    figure.suptitle(f"Final poses, {rollouts.label} (test): grey outline = ground truth")
     return save_figure(figure, path)
 
 
@@ -132,9 +158,9 @@ def rollout_gif(rollouts: Rollouts, path: Path, toss: int = 0, every: int = 3) -
     frames = range(0, int(rollouts.lengths[toss]), every)
 
     def show(t: int):
-        for axis, (name, poses), colour in zip(axes, panels.items(), ("0.6",) + COLOURS):
+        for axis, (name, poses) in zip(axes, panels.items()):
             axis.cla()
-            _draw(axis, poses[toss, t], rollouts.meshes, colour, 1.0, None)
+            _draw(axis, poses[toss, t], rollouts.meshes, TRUTH_COLOUR if name == "ground truth" else model_colour(name))
             _frame_axes(axis, rollouts, toss)
             axis.set_title(name, fontsize=10)
         figure.suptitle(f"{rollouts.label}, test toss {toss}: t = {t * rollouts.dt:.2f} s", fontsize=11)

@@ -40,9 +40,10 @@ class ContactModel(ABC):
                 f"({', '.join(sorted(state))}): implement load_fitted_state beside fitted_state"
             )
 
-    def scene_xml(self, dataset: Recordings) -> str | None:
-        """The MuJoCo scene (MJCF) this model simulates `dataset` with, if it is MuJoCo-based; else None."""
-        return None
+    def scene_files(self, dataset: Recordings) -> dict[str, str]:
+        """The scene this model simulates `dataset` in, in its engine's own format ({relative path: text}: MJCF,
+        URDF, SDFormat and their meshes), if it is engine-based; else {}."""
+        return {}
 
     @property
     def learns(self) -> bool:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from abc import ABC, abstractmethod
 from collections import Counter, OrderedDict
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -114,7 +115,37 @@ class SimulationResult:
         return world_velocities(self.poses, self.qvel)
 
 
-class MujocoRollouts:
+class Rollouts(ABC):
+    """Batched simulation of a scene for many parameter sets x initial states, in any engine (sim/engines.py)."""
+
+    dataset: Scene
+
+    @abstractmethod
+    def simulate(self, params, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> SimulationResult:
+        """Frames 1..n_steps (dt apart) after poses0 [N, K, 7] / velocities0 [N, K, 6], for B parameter sets (one set:
+        B = 1)."""
+
+    def renew_data(self) -> None:  # noqa: B027 (engines without per-call state have nothing to renew)
+        """Start afresh after a call that timed out (its native work may still be running)."""
+
+    def close(self) -> None:  # noqa: B027 (engines without workers have nothing to close)
+        """Release worker processes or native resources."""
+
+    def rollout_context(self, context: Context, params) -> SimulationResult:
+        """The shared protocol: start from the last context frame, return context + predictions [B, N, horizon, ...]."""
+        result = self.simulate(
+            params, context.poses[:, -1], context.velocities[:, -1], context.horizon - context.n_context
+        )
+        leading = result.poses.shape[:1]
+        context_qvel = body_frame_velocities(context.poses, context.velocities)
+        return SimulationResult(
+            np.concatenate([np.broadcast_to(context.poses, leading + context.poses.shape), result.poses], axis=2),
+            np.concatenate([np.broadcast_to(context_qvel, leading + context_qvel.shape), result.qvel], axis=2),
+            np.concatenate([np.zeros(leading + context.poses.shape[:2], dtype=bool), result.unstable_frames], axis=2),
+        )
+
+
+class MujocoRollouts(Rollouts):
     """Rolls a dataset's scene out in MuJoCo for any number of contact parameter sets and initial states."""
 
     def __init__(self, dataset: Scene, nthread: int | None = None, substeps: int = 1):
@@ -137,10 +168,6 @@ class MujocoRollouts:
         self._reference_key = structure_key(reference)
         self._other_data: dict[tuple, list[mujoco.MjData]] = {}
         self._persistent_pool = True
-        # A body whose frame origin is lower than this under the floor has no vertex above it.
-        self._sunk_depth = np.array(
-            [np.linalg.norm(dataset.body_mesh(k).vertices, axis=1).max() for k in range(dataset.n_bodies)]
-        )
 
     def renew_data(self) -> None:
         """Fresh MjData for every thread (after a timed-out call, whose native threads may still hold the old ones)."""
@@ -224,22 +251,10 @@ class MujocoRollouts:
         diverged = np.maximum.accumulate(np.abs(frames[..., 0] - expected_time) > self.timestep / 2, axis=-1)
         poses[diverged] = np.nan
         qvel[diverged] = np.nan
-        # Each parameter set's energy with its own mass properties and gravity: measured with the recordings' ones, an
-        # offset centre of mass gains "energy" in free flight and a correct model reads as blown up. Sets that share
-        # their effects (all of a SysID generation) are measured in one pass.
-        by_effects: dict[SceneEffects, list[int]] = {}
-        for b, p in enumerate(parameter_sets):
-            by_effects.setdefault(p.effects, []).append(b)
-        gained = np.empty(frames.shape[:3], dtype=bool)
-        with np.errstate(invalid="ignore", over="ignore"):
-            for effects, members in by_effects.items():
-                chosen = slice(None) if len(by_effects) == 1 else members
-                energy = body_frame_energy(self.dataset, poses[chosen], qvel[chosen], effects)
-                allowed = self._allowed_energy(poses0, velocities0, effects)
-                # MuJoCo resets on NaN or |x| > 1e10, so non-finite energy only flags the frames set to NaN above.
-                gained[chosen] = ~(energy <= allowed[:, None])
-            sunk = (poses[..., 2] < self.dataset.floor_z - self._sunk_depth).any(axis=-1)
-        return SimulationResult(poses, qvel, np.maximum.accumulate(diverged | gained | sunk, axis=-1))
+        effects = [p.effects for p in parameter_sets]
+        return SimulationResult(
+            poses, qvel, unstable_frames(self.dataset, poses, qvel, poses0, velocities0, diverged, effects)
+        )
 
     def step(
         self, params: ContactParameters, qpos: np.ndarray, qvel: np.ndarray
@@ -276,26 +291,45 @@ class MujocoRollouts:
         new_qvel[diverged] = np.nan
         return new_qpos, new_qvel, diverged
 
-    def _allowed_energy(self, poses0: np.ndarray, velocities0: np.ndarray, effects: SceneEffects) -> np.ndarray:
-        initial = mechanical_energy(
-            self.dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64), effects
-        )
-        return ENERGY_GAIN * initial + ENERGY_SLACK * sum(body.mass for body in self.dataset.bodies)
 
-    def rollout_context(
-        self, context: Context, params: ContactParameters | Sequence[ContactParameters]
-    ) -> SimulationResult:
-        """The shared protocol: start from the last context frame, return context + predictions [B, N, horizon, ...]."""
-        result = self.simulate(
-            params, context.poses[:, -1], context.velocities[:, -1], context.horizon - context.n_context
+def unstable_frames(
+    dataset: Scene,
+    poses: np.ndarray,
+    qvel: np.ndarray,
+    poses0: np.ndarray,
+    velocities0: np.ndarray,
+    diverged: np.ndarray,
+    effects: Sequence[SceneEffects] | None = None,
+) -> np.ndarray:
+    """[B, N, T] frames from which a simulation is unusable: it diverged (`diverged` [B, N, T]: the engine failed or
+    left the finite numbers), gained energy (ENERGY_GAIN) or fell through the floor; poses [B, N, T, K, 7] and
+    free-joint velocities qvel [B, N, T, K, 6] started from poses0 [N, K, 7] / velocities0 [N, K, 6], each of the B
+    parameter sets with its own `effects` (None: NO_EFFECTS for all)."""
+    effects = [NO_EFFECTS] * len(poses) if effects is None else list(effects)
+    # Each parameter set's energy with its own mass properties and gravity: measured with the recordings' ones, an
+    # offset centre of mass gains "energy" in free flight and a correct model reads as blown up. Sets that share
+    # their effects (all of a SysID generation) are measured in one pass.
+    by_effects: dict[SceneEffects, list[int]] = {}
+    for b, scene_effects in enumerate(effects):
+        by_effects.setdefault(scene_effects, []).append(b)
+    masses = sum(body.mass for body in dataset.bodies)
+    gained = np.empty(poses.shape[:3], dtype=bool)
+    with np.errstate(invalid="ignore", over="ignore"):
+        for scene_effects, members in by_effects.items():
+            chosen = slice(None) if len(by_effects) == 1 else members
+            energy = body_frame_energy(dataset, poses[chosen], qvel[chosen], scene_effects)
+            initial = mechanical_energy(
+                dataset, np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64), scene_effects
+            )
+            allowed = ENERGY_GAIN * initial + ENERGY_SLACK * masses
+            # Non-finite energy only flags frames that diverged (NaN) anyway.
+            gained[chosen] = ~(energy <= allowed[:, None])
+        # A body whose frame origin is lower than this under the floor has no vertex above it.
+        sunk_depth = np.array(
+            [np.linalg.norm(dataset.body_mesh(k).vertices, axis=1).max() for k in range(dataset.n_bodies)]
         )
-        leading = result.poses.shape[:1]
-        context_qvel = body_frame_velocities(context.poses, context.velocities)
-        return SimulationResult(
-            np.concatenate([np.broadcast_to(context.poses, leading + context.poses.shape), result.poses], axis=2),
-            np.concatenate([np.broadcast_to(context_qvel, leading + context_qvel.shape), result.qvel], axis=2),
-            np.concatenate([np.zeros(leading + context.poses.shape[:2], dtype=bool), result.unstable_frames], axis=2),
-        )
+        sunk = (poses[..., 2] < dataset.floor_z - sunk_depth).any(axis=-1)
+    return np.maximum.accumulate(diverged | gained | sunk, axis=-1)
 
 
 def structure_key(model: mujoco.MjModel) -> tuple:

@@ -79,8 +79,8 @@ class ResidualContactModel(ContactModel):
         self.substeps = substeps
         self.nthread = nthread
 
-    def scene_xml(self, dataset: Recordings) -> str:
-        return scene_xml(dataset, self.parameters, self.substeps)
+    def scene_files(self, dataset: Recordings) -> dict[str, str]:
+        return {"scene.xml": scene_xml(dataset, self.parameters, self.substeps)}
 
     def rollout(self, scene: Scene, context: Context) -> np.ndarray:
         simulator = MujocoRollouts(scene, self.nthread, self.substeps)

@@ -1,4 +1,5 @@
-"""SysID as a non-gradient Lightning run: trainer.fit ticks, the NevergradSearch callback asks, rolls out and tells."""
+"""SysID as a non-gradient Lightning run: trainer.fit ticks, the NevergradSearch callback asks, rolls out and tells;
+the same search and objective for every engine (sim/engines.py)."""
 
 from __future__ import annotations
 
@@ -15,11 +16,11 @@ from nevergrad.optimization import recaster
 from torch.utils.data import DataLoader
 
 from contactbench.errors import ContactbenchError
-from contactbench.models.analytical import MujocoContactModel
+from contactbench.models.analytical import EngineContactModel, MujocoContactModel
 from contactbench.models.sysid.objective import ConfigurationObjective
-from contactbench.models.sysid.search_space import SearchSpace
+from contactbench.models.sysid.search_space import search_space
 from contactbench.recordings import Recordings
-from contactbench.sim.rollout import MujocoRollouts
+from contactbench.sim.engines import ENGINE_CLASSES, engine
 
 log = logging.getLogger(__name__)
 
@@ -55,15 +56,18 @@ class SysIDModule(pl.LightningModule):
         position_exponent: int = 1,
         nthread: int | None = None,
         substeps: int = 1,
+        engine: str = "mujoco",
     ):
         super().__init__()
+        if engine not in ENGINE_CLASSES:
+            raise ContactbenchError(f"model.module.engine is {engine!r} (expected one of {', '.join(ENGINE_CLASSES)})")
         for name, value in (("evaluations", evaluations), ("restarts", restarts), ("num_workers", num_workers)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
         self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
         self.automatic_optimization = False
         self.dataset = dataset
-        self.space = SearchSpace(dataset.n_bodies)
+        self.space = search_space(engine, dataset.n_bodies)
         self.register_buffer("selected", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64))
         self.register_buffer("selected_val_loss", torch.tensor(float("inf"), dtype=torch.float64))
 
@@ -77,11 +81,14 @@ class SysIDModule(pl.LightningModule):
     def training_step(self, batch, batch_index):
         return None  # the NevergradSearch callback does the work of a step
 
-    def to_contact_model(self) -> MujocoContactModel:
+    def to_contact_model(self) -> EngineContactModel:
         if not torch.isfinite(self.selected).all():
             raise RuntimeError("the SysID search has not selected parameters yet (no finished run in this checkpoint)")
         parameters = self.space.from_vector(self.selected.cpu().numpy())
-        return MujocoContactModel(name="sysid", parameters=parameters, substeps=self.hparams.substeps)
+        h = self.hparams
+        if h.engine == "mujoco":
+            return MujocoContactModel(name="sysid", parameters=parameters, substeps=h.substeps)
+        return EngineContactModel(f"sysid_{h.engine}", h.engine, parameters=parameters, substeps=h.substeps)
 
     def fitted_summary(self) -> dict:
         return {
@@ -122,7 +129,7 @@ class NevergradSearch(pl.Callback):
 
     def on_fit_start(self, trainer, module: SysIDModule) -> None:
         h = module.hparams
-        rollouts = MujocoRollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
+        self.rollouts = rollouts = engine(h.engine).rollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
         penalties = {
             "unstable_penalty": h.unstable_penalty,
             "timeout_s": h.timeout_s,
@@ -143,6 +150,7 @@ class NevergradSearch(pl.Callback):
         stop_recast_threads()
         self.train_objective.close()
         self.val_objective.close()
+        self.rollouts.close()
 
     # ------------------------------------------------------------ one generation per step
 
@@ -186,13 +194,14 @@ class NevergradSearch(pl.Callback):
         path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(".last.ckpt.partial")
-        # Lightning's default checkpoint carries callback states: this search's are numbers only, loaded weights_only
-        trainer.save_checkpoint(str(partial))
+        # With the callback states (weights_only=False here means "not weights alone"; said explicitly, Lightning logs
+        # no line per generation): this search's are numbers only, and a resume loads them with weights_only.
+        trainer.save_checkpoint(str(partial), weights_only=False)
         os.replace(partial, path)
 
     def _new_optimizer(self, module: SysIDModule):
         h = module.hparams
-        space = module.space.parametrization(seed=h.seed * 1000 + self.restart)
+        space = module.space.parametrization(seed=h.seed * 1000 + self.restart, restart=self.restart)
         return ng.optimizers.registry[h.optimizer](
             parametrization=space, budget=h.evaluations, num_workers=h.num_workers
         )

@@ -13,7 +13,7 @@ from contactbench.metrics import configuration_error
 from contactbench.protocol import Context, make_context, scored_frames, trajectory_means
 from contactbench.recordings import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters
-from contactbench.sim.rollout import MujocoRollouts
+from contactbench.sim.rollout import Rollouts
 
 log = logging.getLogger(__name__)
 # One native call per group: on the real cube four leave 7% of the steps unscored (one call, 25%).
@@ -42,7 +42,7 @@ class ConfigurationObjective:
         dataset: Recordings,
         split: str,
         context_frames: int,
-        rollouts: MujocoRollouts,
+        rollouts: Rollouts,
         *,
         unstable_penalty: float = 1e3,
         timeout_s: float = 120.0,

@@ -1,4 +1,4 @@
-"""The SysID search space (paper Table 2c) and its mapping to MuJoCo contact parameters."""
+"""The SysID search spaces: MuJoCo's (paper Table 2c) and any other engine's, mapped to its contact parameters."""
 
 from __future__ import annotations
 
@@ -7,20 +7,22 @@ from dataclasses import dataclass
 import nevergrad as ng
 import numpy as np
 
+from contactbench.sim import mujoco_engine
+from contactbench.sim.engines import Engine, engine
 from contactbench.sim.mujoco_scene import ContactParameters
 
 
 @dataclass(frozen=True)
 class SearchSpace:
-    """Per-object friction, floor friction, floor stiffness (log scale) and floor damping, as in Table 2c."""
+    """Per-object friction, floor friction, floor stiffness (log scale) and floor damping, as in Table 2c: MuJoCo's
+    dimensions (sim/mujoco_engine.py) as one array of frictions and three scalars, the parametrization every
+    published MuJoCo SysID number here was searched in."""
 
     n_bodies: int
-    friction: tuple[float, float] = (0.0, 1.0)
-    stiffness: tuple[float, float] = (1e2, 1e4)  # MuJoCo direct solref: -stiffness
-    damping: tuple[float, float] = (0.0, 1e3)  # MuJoCo direct solref: -damping
-    # Where every search starts. The domain's centre (damping 500) is unstable at the datasets' dt (~6.8 ms):
-    # MuJoCo diverges once damping * dt is of order 1, and a search started there sees only penalties.
-    initial_damping: float = 50.0
+    friction: tuple[float, float] = mujoco_engine.FRICTION
+    stiffness: tuple[float, float] = mujoco_engine.STIFFNESS  # MuJoCo direct solref: -stiffness
+    damping: tuple[float, float] = mujoco_engine.DAMPING  # MuJoCo direct solref: -damping
+    initial_damping: float = mujoco_engine.INITIAL_DAMPING  # where every search starts (see mujoco_engine)
 
     @property
     def names(self) -> list[str]:
@@ -30,7 +32,7 @@ class SearchSpace:
             "floor_damping",
         ]
 
-    def parametrization(self, seed: int) -> ng.p.Dict:
+    def parametrization(self, seed: int, restart: int = 0) -> ng.p.Dict:
         space = ng.p.Dict(
             object_friction=ng.p.Array(shape=(self.n_bodies,), lower=self.friction[0], upper=self.friction[1]),
             floor_friction=ng.p.Scalar(lower=self.friction[0], upper=self.friction[1]),
@@ -66,3 +68,60 @@ class SearchSpace:
 
     def describe(self, params: ContactParameters) -> dict[str, float]:
         return dict(zip(self.names, map(float, self.to_vector(params))))
+
+
+class EngineSearchSpace:
+    """Any engine's identified parameters (sim/engines.py: its `dimensions`) as a nevergrad space, with the same
+    methods as SearchSpace: continuous ones as scalars (log-scaled where the engine says). Discrete ones are not
+    searched but enumerated over the restarts (restart r takes choice r mod n; selection on val compares them), and
+    dimensions that act only with another choice are constants in that restart: with a choice among its dimensions
+    NGOpt runs a portfolio of DiagonalCMA, PSO and DE, without one the CMA metamodel of MuJoCo's Table 2c search."""
+
+    def __init__(self, engine: Engine, n_bodies: int):
+        self.engine = engine
+        self.n_bodies = n_bodies
+        self.dimensions = engine.dimensions(n_bodies)
+
+    @property
+    def names(self) -> list[str]:
+        return [d.name for d in self.dimensions]
+
+    def parametrization(self, seed: int, restart: int = 0) -> ng.p.Dict:
+        chosen = {d.name: d.choices[restart % len(d.choices)] for d in self.dimensions if d.choices}
+        entries = {}
+        for d in self.dimensions:
+            if d.choices:
+                entries[d.name] = chosen[d.name]  # a constant of this restart's search
+            elif d.when is not None and chosen[d.when[0]] != d.when[1]:
+                entries[d.name] = d.init  # a constant: it does not act in this restart's choice
+            else:
+                kind = ng.p.Log if d.log else ng.p.Scalar
+                entries[d.name] = kind(init=d.init, lower=d.low, upper=d.high)
+        space = ng.p.Dict(**entries)
+        space.random_state = np.random.RandomState(seed)
+        return space
+
+    def to_parameters(self, value: dict):
+        """A candidate's value (clipped into the domain: nevergrad may step a hair outside) as engine parameters."""
+        numbers = {
+            d.name: float(d.choices.index(value[d.name])) if d.choices else float(np.clip(value[d.name], d.low, d.high))
+            for d in self.dimensions
+        }
+        return self.engine.from_values(numbers, self.n_bodies)
+
+    def to_vector(self, params) -> np.ndarray:
+        values = self.engine.to_values(params)
+        return np.array([values[name] for name in self.names], dtype=float)
+
+    def from_vector(self, vector):
+        return self.engine.from_values(dict(zip(self.names, map(float, vector))), self.n_bodies)
+
+    def describe(self, params) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.to_vector(params))))
+
+
+def search_space(engine_name: str, n_bodies: int) -> SearchSpace | EngineSearchSpace:
+    """MuJoCo's Table 2c space, or another engine's own."""
+    if engine_name == "mujoco":
+        return SearchSpace(n_bodies)
+    return EngineSearchSpace(engine(engine_name), n_bodies)
