@@ -113,6 +113,8 @@ class BulletWorld(World):
         self.scene = scene
         self.substeps = int(substeps)
         self.coms, self.axes, self.moments = inertial_frames(scene)
+        # Every mesh frame at its centre of mass and along its principal axes (a generated scene): nothing to convert
+        self.mesh_frames_inertial = not self.coms.any() and bool(np.all(self.axes == [1.0, 0.0, 0.0, 0.0]))
         self.parameters: BulletParameters | None = None
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
@@ -123,9 +125,11 @@ class BulletWorld(World):
 
     def _build(self) -> tuple[int, ...]:
         scene, client = self.scene, self.client
+        # One stepSimulation per frame: PyBullet's own sub-stepping splits it into `substeps` steps of dt / substeps
+        # (a Python loop of them cost a tenth of the stepping); none for one, as the generator steps.
         pybullet.setPhysicsEngineParameter(
-            fixedTimeStep=scene.dt / self.substeps,
-            numSubSteps=0,
+            fixedTimeStep=scene.dt,
+            numSubSteps=self.substeps if self.substeps > 1 else 0,
             restitutionVelocityThreshold=TABLE_2A.restitution_velocity_threshold,
             deterministicOverlappingPairs=1,
             physicsClientId=client,
@@ -235,7 +239,9 @@ class BulletWorld(World):
                 body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client
             )
         pybullet.performCollisionDetection(physicsClientId=client)
-        base_poses, base_velocities = self._to_inertial(np.asarray(poses0), np.asarray(velocities0))
+        base_poses, base_velocities = np.asarray(poses0), np.asarray(velocities0)
+        if not self.mesh_frames_inertial:
+            base_poses, base_velocities = self._to_inertial(base_poses, base_velocities)
         for body, pose, velocity in zip(bodies, base_poses, base_velocities):
             pybullet.resetBasePositionAndOrientation(
                 body, pose[:3].tolist(), rotations.wxyz_to_xyzw(pose[3:]).tolist(), physicsClientId=client
@@ -249,8 +255,7 @@ class BulletWorld(World):
         readings = []
         record = readings.append
         for _ in range(n_steps):
-            for _ in range(self.substeps):
-                step(client)
+            step(client)
             for body in bodies:
                 record(read_pose(body, client))
                 record(read_velocity(body, client))
@@ -258,7 +263,7 @@ class BulletWorld(World):
             _flatten(_flatten(readings)), dtype=np.float64, count=n_steps * len(bodies) * _STATE_SIZE
         ).reshape(n_steps, len(bodies), _STATE_SIZE)
         poses, velocities = recorded_motion(states, base_poses[:, 3:])
-        return self._to_mesh(poses, velocities)
+        return (poses, velocities) if self.mesh_frames_inertial else self._to_mesh(poses, velocities)
 
     def close(self) -> None:
         if self.client >= 0:

@@ -51,13 +51,21 @@ Simulation
   raises and SteppedRollouts turns it into an unstable (NaN) candidate.
 * A free body's state is q = (qw, qx, qy, qz, x, y, z) of its frame in world and v = (ω, v) in world: exactly the
   recordings' pose (reordered) and world velocity of the mesh-frame origin, so no conversion is needed beyond the
-  reordering. Parameters reach a built plant by replacing the geometries' proximity properties in the context
-  (SceneGraph.AssignRole, about 0.1 ms), so one diagram per contact model serves every parameter set.
+  reordering.
+* Robustness (drake 1.51.1): in multi-body tosses Drake crashed with a segmentation fault in the broad phase
+  (GeometryState::FinalizePoseUpdate), at random, after 5-60 tosses, when one context served toss after toss, when
+  parameters were swapped into a built context (SceneGraph.AssignRole), and, less often, when convex hulls met convex
+  hulls. Each parameter set got its own diagram (DrakeWorld keeps the last few; a build costs 6 ms), every toss
+  starts from a clone of that diagram's template context (0.3 ms) and box-shaped hulls are Boxes (hull_shape): sixty
+  three-cube tosses with one parameter set then ran through in 6 runs of 7, and a search's changing parameters still
+  crashed within 8-41 candidates. DrakeEngine therefore refuses multi-body scenes (NotApplicable: a sweep skips the
+  job with one line); DrakeWorld itself still builds them, for what single tosses show. Single-body scenes never
+  crashed (over 200,000 tosses of identification).
 """
 
 from __future__ import annotations
 
-import dataclasses
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,7 +81,6 @@ from pydrake.geometry import (
     GeometrySet,
     HalfSpace,
     ProximityProperties,
-    RoleAssign,
     SceneGraph,
     Sphere,
 )
@@ -91,7 +98,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from scipy.spatial import ConvexHull
 
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
 from contactbench.rotations import normalize
@@ -112,6 +119,7 @@ DRAKE_DEFAULT_FRICTION = 0.5
 DRAKE_DEFAULT_POINT_STIFFNESS = 1e6
 DRAKE_DEFAULT_DISSIPATION = 50.0
 DRAKE_DEFAULT_HYDROELASTIC_MODULUS = 1e7
+SIMULATIONS_KEPT = 4  # diagrams a world keeps, least recently used first out (a search asks a generation at a time)
 DIVERGED = 1e4  # m or m/s (rad/s): a toss state beyond this has blown up; its frames from there on are NaN
 
 
@@ -216,7 +224,7 @@ def hull_shape(scene: Scene, k: int, contact_model: str) -> tuple[RigidTransform
     """Body k's collision shape and its pose in the body frame: in point contact a Box where the hull is one (every
     cube here), else the Convex hull. In multi-body tosses Drake 1.51.1 crashed (a segmentation fault, at random after
     5-60 tosses) with Convex hulls touching each other in 1 of 4 runs of 60 tosses even from fresh contexts (see
-    _Simulation), with boxes in none of 6."""
+    _Simulation), with boxes in 1 of 7."""
     box = box_extents(scene, k) if contact_model == "point" else None
     if box is not None:
         return RigidTransform(box[0]), Box(*box[1])
@@ -257,43 +265,20 @@ def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, para
 
 
 class _Simulation:
-    """One finalized diagram of the scene for one contact model, its simulator and where each body's state lies."""
+    """One finalized diagram of the scene for one parameter set, its simulator and where each body's state lies."""
 
-    def __init__(
-        self, builder: DiagramBuilder, plant: MultibodyPlant, scene_graph: SceneGraph, n_bodies: int, frame_steps: int
-    ):
-        vertices = plant.HasBodyNamed("body0_vertices")
-        self.plant, self.scene_graph = plant, scene_graph
+    def __init__(self, builder: DiagramBuilder, plant: MultibodyPlant, n_bodies: int, frame_steps: int):
+        self.plant = plant
         self.diagram = builder.Build()
         self.simulator = Simulator(self.diagram)
-        # Every toss starts from a clone of this context, which holds the parameters: a context reused from toss to
-        # toss crashed Drake 1.51.1 (a segmentation fault in the broad phase's FinalizePoseUpdate) at random after
-        # 5-60 multi-body tosses, from clones never (3 x 60 tosses).
+        # Every toss starts from a clone of this context (see "Robustness" in the module docstring).
         self.template = self.diagram.CreateDefaultContext()
-        self.scene_graph_context = scene_graph.GetMyMutableContextFromRoot(self.template)
         bodies = [plant.GetBodyByName(f"body{k}") for k in range(n_bodies)]
         # Indices into q of each body's pose (x, y, z, qw, qx, qy, qz) and into v of its (v, ω).
         self.pose_index = np.array([b.floating_positions_start() + np.r_[4:7, 0:4] for b in bodies])
         self.velocity_index = np.array([b.floating_velocities_start_in_v() + np.r_[3:6, 0:3] for b in bodies])
-        # Each body's geometries (its hull, then its vertices in point contact) and the floor's.
-        self.body_geometries = [
-            plant.GetCollisionGeometriesForBody(b)
-            + (plant.GetCollisionGeometriesForBody(plant.GetBodyByName(f"body{k}_vertices")) if vertices else [])
-            for k, b in enumerate(bodies)
-        ]
-        self.floor_geometry = plant.GetCollisionGeometriesForBody(plant.GetBodyByName("floor"))[0]
         self.step = plant.time_step()
         self.frame_steps = frame_steps
-        self.parameters: DrakeParameters | None = None  # the ones the context holds
-
-    def assign(self, parameters: DrakeParameters) -> None:
-        if parameters == self.parameters:
-            return
-        source = self.plant.get_source_id()
-        assignments = [(g, body_properties(parameters, k)) for k, body in enumerate(self.body_geometries) for g in body]
-        for geometry, properties in assignments + [(self.floor_geometry, floor_properties(parameters))]:
-            self.scene_graph.AssignRole(self.scene_graph_context, source, geometry, properties, RoleAssign.kReplace)
-        self.parameters = parameters
 
     def toss(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
         n_positions = self.plant.num_positions()
@@ -319,28 +304,32 @@ class _Simulation:
 
 
 class DrakeWorld(World):
-    """Drake's simulation of a scene, one diagram per contact model used, parameters swapped per toss."""
+    """Drake's simulation of a scene: one diagram per parameter set, the last few kept."""
 
     def __init__(self, scene: Scene, substeps: int = 1, scene_file: str | Path | None = None):
         """A world built from the scene; with `scene_file` (an SDFormat file of scene_file's kind, meshes beside it),
         the bodies and their properties are parsed from it instead and toss ignores its parameters."""
         self.scene, self.substeps = scene, int(substeps)
         self.scene_file = scene_file
-        self._simulations: dict[str, _Simulation] = {}
+        self._simulations: OrderedDict[DrakeParameters | str, _Simulation] = OrderedDict()
 
-    def _simulation(self, contact_model: str) -> _Simulation:
-        if contact_model not in self._simulations:
-            builder, plant, scene_graph = new_plant(self.scene, self.substeps, contact_model)
-            if self.scene_file is None:
-                defaults = DrakeEngine().default_parameters(self.scene.n_bodies)
-                add_scene(plant, scene_graph, self.scene, dataclasses.replace(defaults, contact_model=contact_model))
-            else:
-                Parser(plant).AddModels(str(self.scene_file))
-            plant.Finalize()
-            self._simulations[contact_model] = _Simulation(
-                builder, plant, scene_graph, self.scene.n_bodies, self.substeps
-            )
-        return self._simulations[contact_model]
+    def _simulation(self, parameters: DrakeParameters) -> _Simulation:
+        """The diagram of these parameters, built with them: replacing proximity properties in a built context
+        (SceneGraph.AssignRole) crashed Drake 1.51.1 in multi-body searches, where building costs a few ms."""
+        key = parameters if self.scene_file is None else parameters.contact_model
+        if key in self._simulations:
+            self._simulations.move_to_end(key)
+            return self._simulations[key]
+        builder, plant, scene_graph = new_plant(self.scene, self.substeps, parameters.contact_model)
+        if self.scene_file is None:
+            add_scene(plant, scene_graph, self.scene, parameters)
+        else:
+            Parser(plant).AddModels(str(self.scene_file))
+        plant.Finalize()
+        self._simulations[key] = _Simulation(builder, plant, self.scene.n_bodies, self.substeps)
+        if len(self._simulations) > SIMULATIONS_KEPT:
+            self._simulations.popitem(last=False)
+        return self._simulations[key]
 
     def toss(
         self, parameters: DrakeParameters, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int
@@ -349,10 +338,9 @@ class DrakeWorld(World):
             raise ContactbenchError(
                 f"{len(parameters.object_friction)} object frictions for a scene of {self.scene.n_bodies} bodies"
             )
-        simulation = self._simulation(parameters.contact_model)
-        if self.scene_file is None:
-            simulation.assign(parameters)
-        return simulation.toss(np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64), n_steps)
+        return self._simulation(parameters).toss(
+            np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64), n_steps
+        )
 
     def close(self) -> None:
         self._simulations.clear()
@@ -524,7 +512,15 @@ class DrakeEngine(Engine):
             "hunt_crossley_dissipation": parameters.hunt_crossley_dissipation,
         }
 
+    def check_scene(self, scene: Scene) -> None:
+        if scene.n_bodies > 1:
+            raise NotApplicable(
+                f"the Drake engine simulates single-body scenes; {scene.name} has {scene.n_bodies} bodies (drake "
+                "1.51.1 crashed with a segmentation fault at random in body-body contact, see sim/drake_engine.py)"
+            )
+
     def rollouts(self, scene: Scene, nthread: int | None = None, substeps: int = 1) -> SteppedRollouts:
+        self.check_scene(scene)
         return SteppedRollouts(scene, DrakeWorld, nthread, substeps)
 
     def scene_files(self, scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> dict[str, str]:

@@ -66,6 +66,9 @@ class Engine(ABC):
     def to_values(self, parameters: Any) -> dict[str, float]:
         """{dimension name: value} of parameters (the inverse of from_values)."""
 
+    def check_scene(self, scene: Scene) -> None:  # noqa: B027 (engines that take every scene check nothing)
+        """Raise NotApplicable (one line: the job is skipped, not failed) for a scene this engine cannot simulate."""
+
     @abstractmethod
     def rollouts(self, scene: Scene, nthread: int | None = None, substeps: int = 1):
         """A `contactbench.sim.rollout.Rollouts` of the scene: batched simulation of many parameter sets x tosses."""

@@ -20,7 +20,7 @@ from contactbench.models.analytical import EngineContactModel, MujocoContactMode
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import search_space
 from contactbench.recordings import Recordings
-from contactbench.sim.engines import ENGINE_CLASSES, engine
+from contactbench.sim import engines
 
 log = logging.getLogger(__name__)
 
@@ -59,14 +59,16 @@ class SysIDModule(pl.LightningModule):
         engine: str = "mujoco",
     ):
         super().__init__()
-        if engine not in ENGINE_CLASSES:
-            raise ContactbenchError(f"model.module.engine is {engine!r} (expected one of {', '.join(ENGINE_CLASSES)})")
+        if engine not in engines.ENGINE_CLASSES:
+            known = ", ".join(engines.ENGINE_CLASSES)
+            raise ContactbenchError(f"model.module.engine is {engine!r} (expected one of {known})")
         for name, value in (("evaluations", evaluations), ("restarts", restarts), ("num_workers", num_workers)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
         self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
         self.automatic_optimization = False
         self.dataset = dataset
+        engines.engine(engine).check_scene(dataset)
         self.space = search_space(engine, dataset.n_bodies)
         self.register_buffer("selected", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64))
         self.register_buffer("selected_val_loss", torch.tensor(float("inf"), dtype=torch.float64))
@@ -129,7 +131,8 @@ class NevergradSearch(pl.Callback):
 
     def on_fit_start(self, trainer, module: SysIDModule) -> None:
         h = module.hparams
-        self.rollouts = rollouts = engine(h.engine).rollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
+        simulator = engines.engine(h.engine)
+        self.rollouts = rollouts = simulator.rollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
         penalties = {
             "unstable_penalty": h.unstable_penalty,
             "timeout_s": h.timeout_s,
