@@ -65,17 +65,19 @@ def _record_outcome(status: str, why: str) -> None:
 
 class _NoAdvert(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith("💡 Tip")
+        return not str(record.msg).startswith(("💡 Tip", "`weights_only` was not set"))
 
 
 NO_ADVERT = _NoAdvert()
 
 
 def quiet_third_party() -> None:
-    """Drop Lightning's litlogger advert on every fit, and its hint to use srun wherever Slurm is installed (a job
-    under Slurm uses it; one started by hand on a Slurm login node is meant to run there). Once per process, however
-    many jobs of a sweep it runs (addFilter and filterwarnings keep one copy of the same filter)."""
+    """Drop Lightning's litlogger advert on every fit, its note on every checkpoint saved with callback states (SysID
+    saves one per generation), and its hint to use srun wherever Slurm is installed (a job under Slurm uses it; one
+    started by hand on a Slurm login node is meant to run there). Once per process, however many jobs of a sweep it
+    runs (addFilter and filterwarnings keep one copy of the same filter)."""
     logging.getLogger("pytorch_lightning.utilities.rank_zero").addFilter(NO_ADVERT)
+    logging.getLogger("pytorch_lightning.trainer.connectors.checkpoint_connector").addFilter(NO_ADVERT)
     warnings.filterwarnings("ignore", message="The `srun` command is available on your system")
 
 

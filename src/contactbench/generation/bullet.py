@@ -1,4 +1,4 @@
-"""PyBullet toss simulation; the only module that touches PyBullet and its x, y, z, w quaternions."""
+"""PyBullet toss simulation for the generator, and the world pieces the PyBullet engine (sim/) shares."""
 
 from __future__ import annotations
 
@@ -107,7 +107,7 @@ class BulletScene:
             body = pybullet.createMultiBody(
                 settings.mass,
                 body_shape,
-                basePosition=self._parking_spot(k),
+                basePosition=parking_spot(k),
                 baseInertialFramePosition=self.com_offset.tolist(),
                 physicsClientId=client,
             )
@@ -132,10 +132,6 @@ class BulletScene:
         """The centre of mass relative to the mesh frame, world frame, for orientations [..., 4] (w-first)."""
         return rotations.rotate(orientations, np.broadcast_to(self.com_offset, orientations.shape[:-1] + (3,)))
 
-    @staticmethod
-    def _parking_spot(k: int) -> tuple[float, float, float]:
-        return (_PARKING_SPACING * (k + 1), 0.0, _PARKING_HEIGHT)
-
     def close(self) -> None:
         if self.client >= 0:
             pybullet.disconnect(physicsClientId=self.client)
@@ -157,13 +153,7 @@ class BulletScene:
                 f"expected poses [{count}, 7] and velocities [{count}, 6], got {poses.shape} and {velocities.shape}"
             )
         client = self.client
-        # Contact manifolds survive a teleport and warm-start the next solve, so a toss would depend on the one
-        # before it. Parking every body far apart and running collision detection once empties all manifolds.
-        for k, body in enumerate(self.bodies):
-            pybullet.resetBasePositionAndOrientation(
-                body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client
-            )
-        pybullet.performCollisionDetection(physicsClientId=client)
+        forget_contacts(client, self.bodies)
         orientations_xyzw = rotations.wxyz_to_xyzw(poses[:, 3:])
         if self.com_offset.any():  # PyBullet places and reports a body by its centre of mass
             offset = self._offset_world(poses[:, 3:])
@@ -219,10 +209,7 @@ class BulletScene:
                 record(read_velocity(body, client))
             if drag:
                 drag(readings[-2 * len(bodies) :])
-        flat = np.fromiter(
-            _flatten(_flatten(readings)), dtype=np.float64, count=frames * len(bodies) * ENGINE_STATE_SIZE
-        )
-        states = flat.reshape(frames, len(bodies), ENGINE_STATE_SIZE)
+        states = engine_states(readings, frames, len(bodies))
         # Torques are taken about the centres of mass, which PyBullet reports: before moving to the mesh frames.
         contacts = self._contact_wrenches(contact_log, states[..., :3]) if record_contacts else None
         if self.com_offset.any():
@@ -296,6 +283,26 @@ class BulletScene:
                 result[f"contact_{part}_force"] += force_sum[:, :count]
                 result[f"contact_{part}_torque"] += torque_sum[:, :count]
         return result
+
+
+def parking_spot(k: int) -> tuple[float, float, float]:
+    """Where body k waits between tosses: far above the floor and away from every other body."""
+    return (_PARKING_SPACING * (k + 1), 0.0, _PARKING_HEIGHT)
+
+
+def forget_contacts(client: int, bodies: tuple[int, ...]) -> None:
+    """Contact manifolds survive a teleport and warm-start the next solve, so a toss would depend on the one before
+    it: parking every body far apart and running collision detection once empties all manifolds."""
+    for k, body in enumerate(bodies):
+        pybullet.resetBasePositionAndOrientation(body, parking_spot(k), _IDENTITY_XYZW, physicsClientId=client)
+    pybullet.performCollisionDetection(physicsClientId=client)
+
+
+def engine_states(readings: list[tuple], frames: int, count: int) -> np.ndarray:
+    """States [frames, count, 13] from PyBullet's (pose, velocity) reading tuples, body by body and frame by frame, in
+    one conversion (converting each reading in the stepping loop cost as much as the reads)."""
+    flat = np.fromiter(_flatten(_flatten(readings)), dtype=np.float64, count=frames * count * ENGINE_STATE_SIZE)
+    return flat.reshape(frames, count, ENGINE_STATE_SIZE)
 
 
 def recorded_motion(engine_states: np.ndarray, initial_orientations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

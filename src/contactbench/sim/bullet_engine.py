@@ -21,7 +21,6 @@ keeps PyBullet's own rigid contact, which resolves penetration by error reductio
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
@@ -31,7 +30,13 @@ import pybullet
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, recorded_motion
+from contactbench.generation.bullet import (
+    BODY_DYNAMICS_OVERRIDES,
+    engine_states,
+    forget_contacts,
+    parking_spot,
+    recorded_motion,
+)
 from contactbench.generation.scenes import BulletSettings
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
@@ -44,11 +49,6 @@ CONTACT_MODES = (
     "rigid",
     "compliant",
 )  # the generator's engine settings: restitution threshold, floor friction and restitution
-_PARKING_SPACING = 10.0  # m between parked bodies, beyond any contact threshold
-_PARKING_HEIGHT = 10.0
-_IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
-_STATE_SIZE = 13  # per body and frame: position, quaternion x y z w, linear velocity, angular velocity
-_flatten = itertools.chain.from_iterable
 
 
 @dataclass(frozen=True)
@@ -158,7 +158,7 @@ class BulletWorld(World):
             handle = pybullet.createMultiBody(
                 body.mass,
                 shapes[body.mesh],
-                basePosition=self._parking_spot(k),
+                basePosition=parking_spot(k),
                 baseInertialFramePosition=self.coms[k].tolist(),
                 baseInertialFrameOrientation=rotations.wxyz_to_xyzw(self.axes[k]).tolist(),
                 physicsClientId=client,
@@ -173,10 +173,6 @@ class BulletWorld(World):
             )
             bodies.append(handle)
         return tuple(bodies)
-
-    @staticmethod
-    def _parking_spot(k: int) -> tuple[float, float, float]:
-        return (_PARKING_SPACING * (k + 1), 0.0, _PARKING_HEIGHT)
 
     def _apply(self, parameters: BulletParameters) -> None:
         if len(parameters.object_friction) != len(self.bodies):
@@ -232,13 +228,7 @@ class BulletWorld(World):
     ) -> tuple[np.ndarray, np.ndarray]:
         self._apply(parameters)
         client, bodies = self.client, self.bodies
-        # Contact manifolds survive a teleport and warm-start the next solve: parking every body far apart and
-        # running collision detection once empties them, so no toss depends on the one before.
-        for k, body in enumerate(bodies):
-            pybullet.resetBasePositionAndOrientation(
-                body, self._parking_spot(k), _IDENTITY_XYZW, physicsClientId=client
-            )
-        pybullet.performCollisionDetection(physicsClientId=client)
+        forget_contacts(client, bodies)
         base_poses, base_velocities = np.asarray(poses0), np.asarray(velocities0)
         if not self.mesh_frames_inertial:
             base_poses, base_velocities = self._to_inertial(base_poses, base_velocities)
@@ -259,9 +249,7 @@ class BulletWorld(World):
             for body in bodies:
                 record(read_pose(body, client))
                 record(read_velocity(body, client))
-        states = np.fromiter(
-            _flatten(_flatten(readings)), dtype=np.float64, count=n_steps * len(bodies) * _STATE_SIZE
-        ).reshape(n_steps, len(bodies), _STATE_SIZE)
+        states = engine_states(readings, n_steps, len(bodies))
         poses, velocities = recorded_motion(states, base_poses[:, 3:])
         return (poses, velocities) if self.mesh_frames_inertial else self._to_mesh(poses, velocities)
 

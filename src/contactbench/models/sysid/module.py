@@ -197,9 +197,8 @@ class NevergradSearch(pl.Callback):
         path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(".last.ckpt.partial")
-        # With the callback states (weights_only=False here means "not weights alone"; said explicitly, Lightning logs
-        # no line per generation): this search's are numbers only, and a resume loads them with weights_only.
-        trainer.save_checkpoint(str(partial), weights_only=False)
+        # Lightning's default checkpoint carries callback states: this search's are numbers only, loaded weights_only
+        trainer.save_checkpoint(str(partial))
         os.replace(partial, path)
 
     def _new_optimizer(self, module: SysIDModule):
