@@ -16,8 +16,8 @@ main: $(VENV)/.installed
 # other engines untuned and identified: bullet_default, sysid_bullet, drake_default, sysid_drake} x 22
 # synthetic variants + the real cube, scored on val and test, then the report. The hybrid model skips multi-body
 # variants with one line each; `make matrix SEEDS=3` fits every cell with seeds 0, 1, 2 and the report shows their mean
-# and spread. `make matrix BUDGET=paper ARGS='hydra/launcher=submitit_slurm'` sends the same sweep
-# to a Slurm cluster.
+# and spread. `make matrix BUDGET=paper ARGS='hydra/launcher=cluster hydra.launcher.partition=<yours>'` sends the same
+# sweep to a Slurm cluster (docs/CLUSTER.md).
 BUDGET ?= quick
 SEEDS ?= 1
 ARGS ?=

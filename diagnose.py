@@ -17,5 +17,5 @@ def main(cfg: DictConfig) -> str:
 
 
 if __name__ == "__main__":
-    check_command_line()
+    check_command_line("diagnose")
     main()

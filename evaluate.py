@@ -17,5 +17,5 @@ def main(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    check_command_line()
+    check_command_line("evaluate")
     main()

@@ -18,5 +18,5 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    check_command_line()
+    check_command_line("train")
     main()

@@ -28,12 +28,13 @@ from hypothesis import settings as hypothesis_settings
 from hypothesis import strategies as st
 from test_pipeline import compose_config, run_entry_point
 
-from contactbench import runs, settings
+from contactbench import cli, runs, settings
 from contactbench.errors import ContactbenchError
 from contactbench.models.sysid.module import NevergradSearch, check_search_state
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
 
 SYSID = ["model=sysid", "dataset=contactnets_cube", "budget=smoke"]
+EXTERNAL_CONF = Path(__file__).parent / "external_model" / "conf"  # a model of one's own (docs/ADDING_A_MODEL.md)
 
 
 class _CreatesFile:
@@ -74,6 +75,8 @@ def finished_sysid_run(tmp_path_factory) -> Path:
     result = run_entry_point("train.py", [*SYSID, f"hydra.run.dir={run_dir}"], tmp_path, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / "signature.json").is_file()
+    console = result.stdout + result.stderr
+    assert "💡" not in console and "litlogger" not in console, console  # Lightning's advert (cli.quiet_third_party)
     return run_dir
 
 
@@ -931,6 +934,7 @@ def test_fuzzed_datasets_read_or_give_one_recordings_error(mutation):
     "script, overrides, needle",
     [
         ("train.py", ["budget=-1"], "budget=-1: budget is a config group (expected one of paper, quick"),
+        ("train.py", ["model=nosuch"], "model=nosuch: model has no option nosuch (expected one of bullet_default"),
         ("evaluate.py", ["-m", "model=1,2"], "model=1,2: model is a config group (expected one of"),
         ("generate.py", ["variant=["], "cannot parse an override:"),
     ],
@@ -940,3 +944,54 @@ def test_an_override_hydra_cannot_take_is_one_line_not_a_traceback(tmp_path, scr
     assert result.returncode == 2 and needle in result.stderr, result.stderr[-2000:]
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "outputs").exists()  # refused before Hydra made a run folder
+
+
+@pytest.mark.parametrize(
+    "task, arguments, line",
+    [
+        (
+            "train",
+            ["budget=quik"],
+            "budget=quik: budget has no option quik (did you mean quick? expected one of paper,",
+        ),
+        (
+            "evaluate",
+            ["hydra/launcher=lokal"],
+            "hydra/launcher=lokal: hydra/launcher has no option lokal (did you mean",
+        ),
+        (
+            "train",
+            ["-m", "model=gnn,sysd"],
+            "model=sysd: model has no option sysd (did you mean sysid? expected one of",
+        ),
+        ("train", ["-m", "variant=glob(frictioncubes_*)", "model=gnn,nosuch"], "model=nosuch: model has no option"),
+        ("train", ["contxt_frames=3"], "contxt_frames=3: the config has no contxt_frames to override (did you mean"),
+        (
+            "train",
+            ["model=sysid", "model.module.evaluatons=3"],
+            "the config has no model.module.evaluatons to override (did you mean model.module.evaluations=...?",
+        ),
+        ("train", ["-m", "contxt_frames=3,4"], "contxt_frames=3,4: the config has no contxt_frames to override"),
+        ("generate", ["model=gnn,sysid"], "Ambiguous value for argument 'model=gnn,sysid'; 1. To use it as a list"),
+    ],
+)
+def test_what_hydra_would_refuse_with_a_page_is_one_line(capsys, task, arguments, line):
+    """Composed as Hydra composes it, in this process: a sweep's every group option and its first job are checked."""
+    with pytest.raises(SystemExit) as stopped:
+        cli.check_command_line(task, arguments)
+    err = capsys.readouterr().err
+    assert stopped.value.code == 2 and len(err.strip().splitlines()) == 1 and line in err, err
+
+
+@pytest.mark.parametrize(
+    "task, arguments",
+    [
+        ("train", ["-m", "experiment=matrix", "seed=range(3)"]),
+        ("train", ["-m", "model=ballistic,sysid", f"hydra.searchpath=[file://{EXTERNAL_CONF}]", "variant=glob(*)"]),
+        ("generate", ["variant=frictioncubes_0.5", "+effects=[floor_tilt]", "+effect_strength=2"]),
+        ("diagnose", ["recordings=assets/contactnets_cube", "--help"]),
+    ],
+)
+def test_commands_hydra_takes_pass_the_check(capsys, task, arguments):
+    cli.check_command_line(task, arguments)
+    assert capsys.readouterr().err == ""

@@ -116,7 +116,7 @@ MALFORMED = {
     "missing meta.json": (lambda r: _remove(r, "meta.json"), "meta.json: missing"),
     "missing split file": (lambda r: _remove(r, "val.npz"), r"val.npz: split file missing"),
     "wrong format": (lambda r: _edit_meta(r, lambda m: m.update(format="other")), "field 'format'"),
-    "wrong version": (lambda r: _edit_meta(r, lambda m: m.update(version=2)), "field 'version' is 2"),
+    "wrong version": (lambda r: _edit_meta(r, lambda m: m.update(version=3)), "field .version. is 3"),
     "mesh missing": (
         lambda r: _remove(r, "meshes/cube.obj"),
         r"cube.obj: mesh file missing \(meta.json bodies\[0\].mesh\)",

@@ -49,3 +49,38 @@ def world_vertices(poses: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     """Mesh vertices [V, 3] placed at poses [..., 7]: returns [..., V, 3]."""
     q = poses[..., None, 3:]
     return poses[..., None, :3] + rotations.rotate(q, vertices)
+
+
+def hinge_anchor(parent: np.ndarray, joint) -> np.ndarray:
+    """The hinge's anchor in the world [..., 3] for parent poses [..., 7] (a recordings.Joint)."""
+    return world_vertices(parent, joint.parent_anchor[None])[..., 0, :]
+
+
+def hinge_child(
+    parent: np.ndarray, parent_velocity: np.ndarray, joint, angle: np.ndarray, rate: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The child's pose [..., 7] and world velocity [..., 6] from its parent's pose [..., 7] and world velocity
+    [..., 6], the joint angle [...] (rad) and its rate [...] (rad/s); the child's frame is the parent's turned by the
+    angle about the axis, its anchor on the parent's."""
+    turn = rotations.from_axis_angle(joint.axis, angle)
+    orientation = rotations.multiply(parent[..., 3:], turn)
+    anchor = hinge_anchor(parent, joint)
+    position = anchor - rotations.rotate(orientation, np.broadcast_to(joint.child_anchor, anchor.shape))
+    axis = rotations.rotate(parent[..., 3:], np.broadcast_to(joint.axis, anchor.shape))
+    spin = parent_velocity[..., 3:]
+    angular = spin + np.asarray(rate)[..., None] * axis
+    linear = parent_velocity[..., :3] + np.cross(spin, anchor - parent[..., :3]) + np.cross(angular, position - anchor)
+    return np.concatenate([position, orientation], axis=-1), np.concatenate([linear, angular], axis=-1)
+
+
+def hinge_coordinates(
+    parent: np.ndarray, parent_velocity: np.ndarray, child: np.ndarray, child_velocity: np.ndarray, joint
+) -> tuple[np.ndarray, np.ndarray]:
+    """The joint angle [...] (rad, in (-pi, pi]) and rate [...] (rad/s) of a child pose [..., 7] and world velocity
+    [..., 6] relative to its parent's: the turn about the axis that best explains the relative orientation."""
+    relative = rotations.multiply(rotations.conjugate(parent[..., 3:]), child[..., 3:])
+    angle = 2 * np.arctan2(relative[..., 1:] @ joint.axis, relative[..., 0])
+    angle = (angle + np.pi) % (2 * np.pi) - np.pi
+    axis = rotations.rotate(parent[..., 3:], np.broadcast_to(joint.axis, parent.shape[:-1] + (3,)))
+    rate = np.einsum("...i,...i->...", child_velocity[..., 3:] - parent_velocity[..., 3:], axis)
+    return angle, rate

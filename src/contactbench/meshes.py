@@ -51,6 +51,23 @@ class Mesh:
         return com, inertia
 
 
+def convexity_problem(mesh: Mesh, tolerance: float = 1e-6) -> str | None:
+    """Why a closed mesh is not convex (a vertex farther than `tolerance` widths outside a face's plane), or None.
+
+    Engines collide what they are given as convex hulls; a piece or static mesh that is not convex would collide as a
+    different solid than the one the recordings describe."""
+    v0, v1, v2 = (mesh.vertices[mesh.faces[:, i]] for i in range(3))
+    normals = np.cross(v1 - v0, v2 - v0)
+    lengths = np.linalg.norm(normals, axis=1)
+    keep = lengths > 1e-12 * mesh.width**2
+    normals = normals[keep] / lengths[keep, None]
+    outside = np.einsum("fj,vj->fv", normals, mesh.vertices) - np.einsum("fj,fj->f", normals, v0[keep])[:, None]
+    worst = float(outside.max()) if outside.size else 0.0
+    if worst > tolerance * mesh.width:
+        return f"not convex (a vertex lies {worst:.3g} m outside a face's plane)"
+    return None
+
+
 def closedness_problem(faces: np.ndarray, n_vertices: int) -> str | None:
     """Why a face list is not a closed, consistently oriented triangle mesh, or None if it is."""
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) < 4:

@@ -9,9 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench import rotations
+from contactbench.ground import Ground, signed_distance
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import scored_frames, trajectory_means
+from contactbench.recordings import Joint
 
 # Two edges whose directions' cross product is shorter than this (the sine of their angle) are treated as parallel:
 # their cross product names no axis, and the faces of both bodies already cover that configuration.
@@ -121,6 +123,41 @@ def floor_penetration(poses, meshes: list[Mesh], floor_z: float) -> np.ndarray:
 def lowest_vertex_height(poses, meshes: list[Mesh], floor_z: float) -> np.ndarray:
     """min_j z_j − floor_z over each body's mesh vertices (negative when below the floor): [..., K] metres."""
     return _lowest_vertex_z(poses, meshes) - floor_z
+
+
+def ground_clearance(poses, meshes: list[Mesh], ground: Ground) -> np.ndarray:
+    """min_j of the ground's signed distance at each body's mesh vertices (its true surface, concavities included;
+    negative inside the floor, a ramp, a step or a height field): poses [..., K, 7] → [..., K] metres."""
+    if ground.flat:
+        return lowest_vertex_height(poses, meshes, ground.floor_z)
+    poses = _unit_quaternions(np.asarray(poses, float))
+    _check_poses_meshes(poses, meshes)
+    return np.stack(
+        [
+            signed_distance(ground, world_vertices(poses[..., k, :], mesh.vertices))[0].min(axis=-1)
+            for k, mesh in enumerate(meshes)
+        ],
+        axis=-1,
+    )
+
+
+def joint_errors(poses, joints: list[Joint]) -> tuple[np.ndarray, np.ndarray]:
+    """How far poses [..., K, 7] break each hinge: the distance between its two anchors (m) and the angle between its
+    two axes (rad), each [..., J]."""
+    poses = _unit_quaternions(np.asarray(poses, float))
+    gaps, angles = [], []
+    for joint in joints:
+        parent, child = poses[..., joint.parent, :], poses[..., joint.child, :]
+        anchors = [
+            world_vertices(pose, anchor[None])[..., 0, :]
+            for pose, anchor in ((parent, joint.parent_anchor), (child, joint.child_anchor))
+        ]
+        gaps.append(np.linalg.norm(anchors[0] - anchors[1], axis=-1))
+        axis_parent = rotations.rotate(parent[..., 3:], joint.axis)
+        axis_child = rotations.rotate(child[..., 3:], joint.axis)
+        cross = np.linalg.norm(np.cross(axis_parent, axis_child), axis=-1)
+        angles.append(np.arctan2(cross, np.einsum("...i,...i->...", axis_parent, axis_child)))
+    return np.stack(gaps, axis=-1), np.stack(angles, axis=-1)
 
 
 # ---------------------------------------------------------------- separating-axis test for convex bodies
@@ -354,6 +391,8 @@ def compute_metrics(
     meshes: list[Mesh],
     floor_z: float,
     contact_tolerance: float = 1e-3,
+    ground: Ground | None = None,
+    joints: list[Joint] = (),
 ) -> MetricsResult:
     """Score predicted poses [N, T, K, 7] against the truth on frames start_frame … lengths[n] − 1 of each trajectory.
 
@@ -364,7 +403,9 @@ def compute_metrics(
     range are never read and may hold anything. Inside it, a body pose with any NaN or inf component is undefined as a
     whole: it is not dropped but makes every metric of its frame, trajectory and the summary NaN (pairwise collisions
     of that trajectory too), so a diverging model cannot look good. Quaternions are normalised before vertices are
-    placed.
+    placed. With a `ground` (terrain besides the floor at floor_z) penetration and lowest-vertex height are taken
+    against it (ground_clearance); with `joints`, the hinges' anchor gap and axis angle (joint_errors, the largest
+    over the joints) are scored too.
     """
     true_poses, pred_poses = np.asarray(true_poses, float), np.asarray(pred_poses, float)
     lengths = np.asarray(lengths)
@@ -373,13 +414,21 @@ def compute_metrics(
         _undefined_if_not_finite(poses[scored]) for poses in (true_poses, pred_poses)
     )  # [S, K, 7]
     widths = np.array([mesh.width for mesh in meshes])
-    lowest = lowest_vertex_height(pred_scored, meshes, floor_z)
+    lowest = (
+        lowest_vertex_height(pred_scored, meshes, floor_z)
+        if ground is None
+        else ground_clearance(pred_scored, meshes, ground)
+    )
     per_frame_values = {
         "pos_err": position_error(true_scored, pred_scored, widths).mean(axis=-1),
         "rot_err_rad": rotation_error(true_scored, pred_scored).mean(axis=-1),
         "floor_penetration_m": np.maximum(0.0, -lowest).mean(axis=-1),
         "min_vertex_height_m": lowest.mean(axis=-1),
     }
+    if joints:
+        gaps, angles = joint_errors(pred_scored, list(joints))
+        per_frame_values["joint_gap_m"] = gaps.max(axis=-1)
+        per_frame_values["joint_axis_error_rad"] = angles.max(axis=-1)
     n_bodies = len(meshes)
     if n_bodies > 1:
         geometries = [convex_geometry(mesh, k) for k, mesh in enumerate(meshes)]

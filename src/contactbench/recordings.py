@@ -1,4 +1,4 @@
-"""The one reader, validator and writer of the recordings format (shared/RECORDINGS.md, version 1)."""
+"""The one reader, validator and writer of the recordings format (docs/RECORDINGS.md, versions 1 and 2)."""
 
 from __future__ import annotations
 
@@ -18,10 +18,13 @@ import numpy as np
 
 from contactbench import atomic
 from contactbench.errors import ContactbenchError
-from contactbench.meshes import Mesh, MeshError, obj_text, read_obj
+from contactbench.meshes import Mesh, MeshError, convexity_problem, obj_text, read_obj
 
 FORMAT = "rigid-contact-recordings"
-VERSION = 1
+VERSION = 1  # what a dataset of free convex-collided bodies on a flat floor is written as
+SCENE_VERSION = 2  # adds convex pieces of non-convex bodies, static geometry and joints (docs/RECORDINGS.md)
+VERSIONS = (VERSION, SCENE_VERSION)
+MAX_COORDINATE = 1000.0  # m: static geometry farther out than this is a unit or sign mistake, not a scene
 QUATERNION_TOLERANCE = 1e-3
 ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a zip's first entry, or an empty zip
 
@@ -36,6 +39,66 @@ class Body:
     mesh: str  # OBJ path relative to the dataset folder
     mass: float  # kg
     inertia_diagonal: tuple[float, float, float] | None  # kg m^2 about axes through the CoM parallel to the mesh frame
+
+
+@dataclass(frozen=True)
+class HeightField:
+    """A grid of heights over the x-y plane of its static entry's pose, centred there; cells are split into two
+    triangles along the diagonal from (x_i, y_j) to (x_i+1, y_j+1), the surface every engine and metric uses."""
+
+    heights: np.ndarray  # [rows along y, columns along x] metres above the entry's frame
+    size: tuple[float, float]  # extent along x and along y, m
+
+    def grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """The columns' x [C] and the rows' y [R] in the entry's frame."""
+        rows, columns = self.heights.shape
+        return (
+            np.linspace(-self.size[0] / 2, self.size[0] / 2, columns),
+            np.linspace(-self.size[1] / 2, self.size[1] / 2, rows),
+        )
+
+
+@dataclass(frozen=True)
+class Static:
+    """Scene geometry that never moves (version 2): a convex mesh or a height field, at a world pose."""
+
+    name: str
+    pose: np.ndarray  # [7] position, quaternion w x y z of the entry's frame in the world
+    mesh: str | None = None  # OBJ path (a closed convex solid) relative to the dataset folder
+    heightfield: HeightField | None = None
+
+
+def static_entries(entries: list[dict]) -> list[Static]:
+    """meta.json 'static' entries (validated) as Static."""
+    return [
+        Static(
+            name=entry["name"],
+            pose=np.asarray(entry["pose"], dtype=np.float64),
+            mesh=entry.get("mesh"),
+            heightfield=HeightField(
+                np.asarray(entry["heightfield"]["heights"], dtype=np.float64),
+                tuple(float(x) for x in entry["heightfield"]["size"]),
+            )
+            if "heightfield" in entry
+            else None,
+        )
+        for entry in entries
+    ]
+
+
+@dataclass(frozen=True)
+class Joint:
+    """A hinge between two bodies (version 2): the anchors coincide in the world, and the child's mesh frame is the
+    parent's turned by the joint angle about the axis (angle 0: the two frames are parallel)."""
+
+    name: str
+    parent: int  # body indices
+    child: int
+    parent_anchor: np.ndarray  # [3] in the parent's mesh frame, m
+    child_anchor: np.ndarray  # [3] in the child's mesh frame, m
+    axis: np.ndarray  # [3] unit, the same in both mesh frames
+    damping: float  # N m s / rad: torque against the joint's angular rate
+    range: tuple[float, float] | None  # rad, the angles the joint stops at; None: it turns freely
 
 
 @dataclass
@@ -149,7 +212,69 @@ class Scene:
         return len(self.meta["bodies"])
 
     def body_mesh(self, k: int) -> Mesh:
+        """Body k's true surface (closed; convex or not)."""
         return self.meshes[self.meta["bodies"][k]["mesh"]]
+
+    @property
+    def version(self) -> int:
+        return int(self.meta["version"])
+
+    def body_pieces(self, k: int) -> list[Mesh]:
+        """The convex solids engines collide for body k: its pieces (version 2) or its mesh."""
+        entry = self.meta["bodies"][k]
+        paths = entry.get("pieces", [entry["mesh"]]) if self.version >= SCENE_VERSION else [entry["mesh"]]
+        return [self.meshes[path] for path in paths]
+
+    def is_convex(self, k: int) -> bool:
+        """Whether body k is collided as its own mesh (no pieces)."""
+        return self.version < SCENE_VERSION or "pieces" not in self.meta["bodies"][k]
+
+    @property
+    def static(self) -> list[Static]:
+        """Static scene geometry besides the floor (version 2; none in version 1)."""
+        return static_entries(self.meta.get("static", [])) if self.version >= SCENE_VERSION else []
+
+    @property
+    def joints(self) -> list[Joint]:
+        """Hinges between bodies (version 2; none in version 1), each after the one that places its parent."""
+        if self.version < SCENE_VERSION:
+            return []
+        index = {body["name"]: k for k, body in enumerate(self.meta["bodies"])}
+
+        def unit(vector) -> np.ndarray:
+            vector = np.asarray(vector, dtype=np.float64)
+            return vector / np.linalg.norm(vector)
+
+        joints = [
+            Joint(
+                name=entry["name"],
+                parent=index[entry["parent"]],
+                child=index[entry["child"]],
+                parent_anchor=np.asarray(entry["parent_anchor"], dtype=np.float64),
+                child_anchor=np.asarray(entry["child_anchor"], dtype=np.float64),
+                axis=unit(entry["axis"]),
+                damping=float(entry.get("damping", 0.0)),
+                range=tuple(float(x) for x in entry["range"]) if "range" in entry else None,
+            )
+            for entry in self.meta.get("joints", [])
+        ]
+        # parents first (a validated tree), so a joint's parent is placed before its child is
+        placed = set(range(self.n_bodies)) - {joint.child for joint in joints}
+        ordered: list[Joint] = []
+        while len(ordered) < len(joints):
+            ready = [joint for joint in joints if joint.parent in placed and joint.child not in placed]
+            ordered += ready
+            placed |= {joint.child for joint in ready}
+        return ordered
+
+    @property
+    def flat(self) -> bool:
+        """Free convex-collided bodies on the flat floor alone: the scenes every model of the paper handles."""
+        return not self.static and not self.joints and all(self.is_convex(k) for k in range(self.n_bodies))
+
+    def mesh_paths(self) -> list[str]:
+        """Every OBJ file the scene names, once each, in meta.json order."""
+        return mesh_paths(self.meta)
 
     def widths(self) -> np.ndarray:
         """Per-body width w_k: the largest extent of the mesh's axis-aligned bounding box (m)."""
@@ -230,16 +355,25 @@ def _inside_path(value: str, field: str, where: str) -> None:
         )
 
 
+def mesh_paths(meta: Mapping) -> list[str]:
+    """Every OBJ path a (validated) meta.json names: body meshes, their pieces (version 2), static meshes."""
+    paths = [body["mesh"] for body in meta["bodies"]]
+    if meta["version"] >= SCENE_VERSION:
+        paths += [piece for body in meta["bodies"] for piece in body.get("pieces", [])]
+        paths += [entry["mesh"] for entry in meta.get("static", []) if "mesh" in entry]
+    return list(dict.fromkeys(paths))
+
+
 def validate_meta(meta: object, where: str) -> None:
     if not isinstance(meta, dict):
         raise _fail(where, "expected a JSON object")
     if meta.get("format") != FORMAT:
         raise _fail(where, f"field 'format' is {meta.get('format')!r} (expected {FORMAT!r})")
-    if meta.get("version") != VERSION or isinstance(meta.get("version"), bool):
+    if meta.get("version") not in VERSIONS or isinstance(meta.get("version"), bool):
         raise _fail(
             where,
-            f"field 'version' is {meta.get('version')!r} (expected {VERSION}; this reader knows version {VERSION} "
-            "only)",
+            f"field 'version' is {meta.get('version')!r} (expected one of {list(VERSIONS)}, the versions this "
+            "reader knows)",
         )
     _require(meta, "name", str, where, "a string")
     dt = _require(meta, "dt", (int, float), where, "seconds between frames, a positive number")
@@ -273,6 +407,107 @@ def validate_meta(meta: object, where: str) -> None:
         raise _fail(where, f"field 'splits' is {splits!r} (expected split name -> npz file path)")
     for name, value in splits.items():
         _inside_path(value, f"splits.{name}", where)
+    if meta["version"] >= SCENE_VERSION:
+        _validate_scene_fields(meta, where)
+
+
+def _validate_scene_fields(meta: dict, where: str) -> None:
+    """Version 2's pieces, static geometry and joints (their meshes are checked when read)."""
+    names = [body["name"] for body in meta["bodies"]]
+    if len(set(names)) != len(names):
+        raise _fail(where, f"field 'bodies' repeats a name in {names} (expected unique names: joints refer to them)")
+    for k, body in enumerate(meta["bodies"]):
+        if "pieces" in body:
+            pieces = body["pieces"]
+            if not isinstance(pieces, list) or not pieces or not all(isinstance(p, str) for p in pieces):
+                raise _fail(
+                    f"{where}: bodies[{k}]", f"field 'pieces' is {pieces!r} (expected a non-empty list of OBJ paths)"
+                )
+            for i, piece in enumerate(pieces):
+                _inside_path(piece, f"pieces[{i}]", f"{where}: bodies[{k}]")
+    static = meta.get("static", [])
+    if not isinstance(static, list):
+        raise _fail(where, f"field 'static' is {static!r} (expected a list of static meshes and height fields)")
+    for i, entry in enumerate(static):
+        entry_where = f"{where}: static[{i}]"
+        if not isinstance(entry, dict):
+            raise _fail(entry_where, "expected an object with name, pose and mesh or heightfield")
+        _require(entry, "name", str, entry_where, "a string")
+        _require(entry, "pose", list, entry_where, "[x, y, z, qw, qx, qy, qz]")
+        pose = _vector(entry, "pose", 7, entry_where)
+        if max(abs(x) for x in pose[:3]) > MAX_COORDINATE:
+            raise _fail(entry_where, f"field 'pose' is {pose!r} (expected a position within {MAX_COORDINATE:g} m)")
+        if abs(np.linalg.norm(pose[3:]) - 1.0) > QUATERNION_TOLERANCE:
+            raise _fail(entry_where, f"field 'pose' has quaternion {pose[3:]!r} (expected a unit quaternion)")
+        if ("mesh" in entry) == ("heightfield" in entry):
+            raise _fail(entry_where, "expected exactly one of 'mesh' (an OBJ path) and 'heightfield'")
+        if "mesh" in entry:
+            _require(entry, "mesh", str, entry_where, "an OBJ path relative to the dataset folder")
+            _inside_path(entry["mesh"], "mesh", entry_where)
+        else:
+            _validate_heightfield(entry["heightfield"], f"{entry_where}.heightfield")
+    joints = meta.get("joints", [])
+    if not isinstance(joints, list):
+        raise _fail(where, f"field 'joints' is {joints!r} (expected a list of hinges)")
+    children: set[str] = set()
+    for i, joint in enumerate(joints):
+        joint_where = f"{where}: joints[{i}]"
+        if not isinstance(joint, dict):
+            raise _fail(joint_where, "expected an object with name, type, parent, child, anchors and axes")
+        _require(joint, "name", str, joint_where, "a string")
+        if joint.get("type") != "hinge":
+            raise _fail(joint_where, f"field 'type' is {joint.get('type')!r} (expected 'hinge', the one joint known)")
+        for key in ("parent", "child"):
+            _require(joint, key, str, joint_where, "the name of a body in 'bodies'")
+            if joint[key] not in names:
+                raise _fail(joint_where, f"field '{key}' is {joint[key]!r} (expected one of the bodies {names})")
+        if joint["parent"] == joint["child"]:
+            raise _fail(joint_where, f"fields 'parent' and 'child' are both {joint['parent']!r} (expected two bodies)")
+        if joint["child"] in children:
+            raise _fail(joint_where, f"field 'child': {joint['child']!r} is the child of two joints (expected a tree)")
+        children.add(joint["child"])
+        for key in ("parent_anchor", "child_anchor", "axis"):
+            _require(joint, key, list, joint_where, "[x, y, z] in the body's mesh frame")
+            _vector(joint, key, 3, joint_where)
+        if np.linalg.norm(joint["axis"]) < 1e-9:
+            raise _fail(joint_where, f"field 'axis' is {joint['axis']!r} (expected a non-zero direction)")
+        if "range" in joint:
+            _require(joint, "range", list, joint_where, "[lowest, highest] angle in rad")
+            low, high = _vector(joint, "range", 2, joint_where)
+            if not low < high:
+                raise _fail(joint_where, f"field 'range' is {joint['range']!r} (expected lowest < highest, in rad)")
+        if "damping" in joint:
+            damping = _require(joint, "damping", (int, float), joint_where, "N m s/rad, >= 0")
+            if not (np.isfinite(damping) and damping >= 0):
+                raise _fail(joint_where, f"field 'damping' is {damping!r} (expected N m s/rad, >= 0)")
+    parent_of = {joint["child"]: joint["parent"] for joint in joints}
+    for name in parent_of:
+        seen = {name}
+        while name in parent_of:
+            name = parent_of[name]
+            if name in seen:
+                raise _fail(where, f"field 'joints' closes a loop through {name!r} (expected a tree of bodies)")
+            seen.add(name)
+
+
+def _validate_heightfield(field: object, where: str) -> None:
+    if not isinstance(field, dict):
+        raise _fail(where, "expected an object with 'heights' (rows of numbers) and 'size' [x, y]")
+    heights = field.get("heights")
+    rows = heights if isinstance(heights, list) else []
+    if (
+        len(rows) < 2
+        or not all(isinstance(row, list) and len(row) == len(rows[0]) >= 2 for row in rows)
+        or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for row in rows for x in row)
+    ):
+        raise _fail(where, "field 'heights' is not a grid (expected at least 2 rows of at least 2 numbers, equal rows)")
+    grid = np.asarray(rows, dtype=np.float64)
+    if not np.isfinite(grid).all() or np.abs(grid).max() > MAX_COORDINATE:
+        raise _fail(where, f"field 'heights' (expected finite heights within {MAX_COORDINATE:g} m)")
+    _require(field, "size", list, where, "[extent along x, extent along y] in m")
+    size = _vector(field, "size", 2, where)
+    if min(size) <= 0 or max(size) > MAX_COORDINATE:
+        raise _fail(where, f"field 'size' is {size!r} (expected two positive extents in m)")
 
 
 def validate_split(split: Split, n_bodies: int, where: str) -> None:
@@ -513,16 +748,17 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
     root = Path(root)
     meta = read_meta(root)
     meshes: dict[str, Mesh] = {}
-    for k, body in enumerate(meta["bodies"]):
-        if body["mesh"] in meshes:
+    for relative, named_by in _mesh_fields(meta):
+        if relative in meshes:
             continue
-        mesh_path = _inside(root, body["mesh"], f"bodies[{k}].mesh")
+        mesh_path = _inside(root, relative, named_by)
         if not mesh_path.is_file():
-            raise RecordingsError(f"{mesh_path}: mesh file missing (meta.json bodies[{k}].mesh)")
+            raise RecordingsError(f"{mesh_path}: mesh file missing (meta.json {named_by})")
         try:
-            meshes[body["mesh"]] = read_obj(mesh_path)
+            meshes[relative] = read_obj(mesh_path)
         except MeshError as error:
-            raise RecordingsError(f"{error} (meta.json bodies[{k}].mesh)") from None
+            raise RecordingsError(f"{error} (meta.json {named_by})") from None
+    check_convex_parts(meta, meshes, str(root / "meta.json"))
     wanted = list(meta["splits"]) if splits is None else list(splits)
     unknown = [name for name in wanted if name not in meta["splits"]]
     if unknown:
@@ -533,6 +769,48 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
         name: read_split(_inside(root, meta["splits"][name], f"splits.{name}"), len(meta["bodies"])) for name in wanted
     }
     return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
+
+
+def _mesh_fields(meta: Mapping) -> list[tuple[str, str]]:
+    """(OBJ path, the meta.json field naming it) for every mesh of a validated meta."""
+    fields = [(body["mesh"], f"bodies[{k}].mesh") for k, body in enumerate(meta["bodies"])]
+    if meta["version"] >= SCENE_VERSION:
+        fields += [
+            (piece, f"bodies[{k}].pieces[{i}]")
+            for k, body in enumerate(meta["bodies"])
+            for i, piece in enumerate(body.get("pieces", []))
+        ]
+        fields += [
+            (entry["mesh"], f"static[{i}].mesh") for i, entry in enumerate(meta.get("static", [])) if "mesh" in entry
+        ]
+    return fields
+
+
+def check_convex_parts(meta: Mapping, meshes: Mapping[str, Mesh], where: str) -> None:
+    """Pieces and static meshes are convex (engines collide convex hulls), and a body's pieces stay within its mesh's
+    bounding box (they are parts of it)."""
+    if meta["version"] < SCENE_VERSION:
+        return
+    for relative, named_by in _mesh_fields(meta):
+        if ".pieces[" in named_by or named_by.startswith("static["):
+            problem = convexity_problem(meshes[relative])
+            if problem:
+                raise RecordingsError(
+                    f"{where}: field '{named_by}' ({relative}) is {problem}; expected a convex solid (split a"
+                    " non-convex shape into several convex pieces or static entries)"
+                )
+    for k, body in enumerate(meta["bodies"]):
+        mesh = meshes[body["mesh"]]
+        slack = 1e-6 * mesh.width
+        for i, piece in enumerate(body.get("pieces", []) if meta["version"] >= SCENE_VERSION else []):
+            vertices = meshes[piece].vertices
+            if (vertices < mesh.vertices.min(axis=0) - slack).any() or (
+                vertices > mesh.vertices.max(axis=0) + slack
+            ).any():
+                raise RecordingsError(
+                    f"{where}: field 'bodies[{k}].pieces[{i}]' ({piece}) reaches outside its body's mesh "
+                    f"{body['mesh']} (expected convex parts of that body, in its mesh frame)"
+                )
 
 
 def require_frames(recordings: Recordings, minimum: int, reason: str) -> None:
@@ -571,11 +849,10 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
     root = Path(root)
     meta = copy.deepcopy(recordings.meta)
     validate_meta(meta, f"{root / 'meta.json'} (being written)")
-    missing = sorted({body["mesh"] for body in meta["bodies"]} - set(recordings.meshes))
+    missing = [path for path in mesh_paths(meta) if path not in recordings.meshes]
     if missing:
-        raise RecordingsError(
-            f"{root / 'meta.json'} (being written): no mesh given for {missing[0]!r} (meta.json bodies[].mesh)"
-        )
+        raise RecordingsError(f"{root / 'meta.json'} (being written): no mesh given for {missing[0]!r}")
+    check_convex_parts(meta, recordings.meshes, f"{root / 'meta.json'} (being written)")
     for name, split in recordings.splits.items():
         if name not in meta["splits"]:
             raise RecordingsError(f"{root / 'meta.json'} (being written): split {name!r} not listed in 'splits'")
@@ -583,8 +860,8 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
     atomic.remove_stale_staging(root)  # left by a writer killed during its final write
     staging = atomic.staging_directory(root)
     try:
-        for mesh_path, mesh in recordings.meshes.items():
-            atomic.write_text(staging / mesh_path, obj_text(mesh))
+        for mesh_path in mesh_paths(meta):
+            atomic.write_text(staging / mesh_path, obj_text(recordings.meshes[mesh_path]))
         for name, split in recordings.splits.items():
             atomic.write_npz(staging / meta["splits"][name], split.arrays())
         atomic.write_json(staging / "meta.json", meta)

@@ -157,7 +157,7 @@ def _check_scene(cfg: DictConfig) -> None:
             raise error.__cause__ from None
         raise
     variant = str(cfg.dataset.variant)
-    value = variant.split("=", 1)[1] if "=" in variant else variant
+    value = "_".join(part.split("=", 1)[-1] for part in variant.split(","))  # ground=ramp,faces=6 -> ramp_6
     if not (CONFIG_DIR / "variant" / f"{cfg.dataset.name}_{value}.yaml").is_file():
         log.warning(
             "%s %s is a custom variant, not one of the paper's Table 1 variants (conf/variant/)",

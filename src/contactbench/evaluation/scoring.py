@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from contactbench import atomic
+from contactbench.ground import Ground
 from contactbench.metrics import MetricsResult, compute_metrics
 from contactbench.models.base import ContactModel
 from contactbench.protocol import make_context
@@ -63,6 +64,8 @@ def score_model(
         context_frames,
         [dataset.body_mesh(k) for k in range(dataset.n_bodies)],
         dataset.floor_z,
+        ground=None if dataset.flat else Ground.of(dataset),
+        joints=dataset.joints,
     )
     header = {
         "model": model.name,

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import itertools
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
@@ -11,7 +14,8 @@ import pybullet
 from contactbench import rotations
 from contactbench.generation.effects import NONE, ConcealedEffects
 from contactbench.generation.scenes import BulletSettings, SceneSpec
-from contactbench.meshes import Mesh
+from contactbench.meshes import Mesh, obj_text
+from contactbench.recordings import Static
 
 CONTACT_KEYS = ("contact_normal_force", "contact_friction_force", "contact_normal_torque", "contact_friction_torque")
 # Bodies wait here between tosses: far above the floor and 10 m from each other, beyond any contact threshold.
@@ -38,8 +42,16 @@ class BulletScene:
     """A private PyBullet DIRECT world with a floor and `spec.bodies` copies of `mesh`, reusable across tosses."""
 
     def __init__(
-        self, mesh: Mesh, spec: SceneSpec, settings: BulletSettings = BulletSettings(), effects: ConcealedEffects = NONE
+        self,
+        mesh: Mesh,
+        spec: SceneSpec,
+        settings: BulletSettings = BulletSettings(),
+        effects: ConcealedEffects = NONE,
+        pieces: Sequence[Mesh] = (),
+        static: Sequence[tuple[Static, Mesh | None]] = (),
     ):
+        """`mesh` is each body's true surface (its mass properties), `pieces` the convex solids it collides as
+        (default: the mesh's hull), `static` the terrain besides the floor (entries and their meshes)."""
         com, inertia = mesh.mass_properties(settings.mass)
         if np.linalg.norm(com) > 1e-9 * mesh.width:
             raise ValueError(f"mesh frame must sit at the centre of mass; it is off by {com} m")
@@ -61,12 +73,13 @@ class BulletScene:
         self.spin_damping_torque = effects.spin_damping * true_inertia  # per body axis, times the spin there
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
-            self.floor, self.bodies = self._build(mesh)
+            self.floor, self.bodies = self._build(list(pieces) or [mesh])
+            self.static = add_static(self.client, static, settings.floor_friction, settings.floor_restitution)
         except BaseException:
             self.close()
             raise
 
-    def _build(self, mesh: Mesh) -> tuple[int, tuple[int, ...]]:
+    def _build(self, pieces: list[Mesh]) -> tuple[int, tuple[int, ...]]:
         settings, spec, client = self.settings, self.spec, self.client
         pybullet.setPhysicsEngineParameter(
             fixedTimeStep=settings.dt,
@@ -98,10 +111,7 @@ class BulletScene:
             anisotropicFriction=(*self.effects.floor_friction_scale, 1.0),
             physicsClientId=client,
         )
-        # Without indices PyBullet wraps the vertices in a convex hull: exactly our solids.
-        body_shape = pybullet.createCollisionShape(
-            pybullet.GEOM_MESH, vertices=mesh.vertices.tolist(), physicsClientId=client
-        )
+        body_shape = convex_compound(client, pieces)
         bodies = []
         for k in range(spec.bodies):
             body = pybullet.createMultiBody(
@@ -283,6 +293,80 @@ class BulletScene:
                 result[f"contact_{part}_force"] += force_sum[:, :count]
                 result[f"contact_{part}_torque"] += torque_sum[:, :count]
         return result
+
+
+def convex_compound(client: int, pieces: Sequence[Mesh]) -> int:
+    """A collision shape of convex pieces: one hull (PyBullet wraps vertices without indices in their hull), or, for
+    several, an OBJ with one object per piece, which PyBullet loads as a compound of their hulls."""
+    if len(pieces) == 1:
+        return pybullet.createCollisionShape(
+            pybullet.GEOM_MESH, vertices=pieces[0].vertices.tolist(), physicsClientId=client
+        )
+    with tempfile.TemporaryDirectory(prefix="contactbench-pieces-") as folder:
+        path = Path(folder) / "pieces.obj"
+        lines, offset = [], 0
+        for i, piece in enumerate(pieces):  # OBJ indices count across objects
+            lines.append(f"o piece_{i}\n" + obj_text(Mesh(piece.vertices, piece.faces + offset)))
+            offset += len(piece.vertices)
+        path.write_text("".join(lines))
+        return pybullet.createCollisionShape(pybullet.GEOM_MESH, fileName=str(path), physicsClientId=client)
+
+
+def heightfield_mesh(static: Static) -> Mesh:
+    """A height field's surface as triangles (open: a static concave mesh in PyBullet), split as HeightField says."""
+    field = static.heightfield
+    xs, ys = field.grid()
+    x, y = np.meshgrid(xs, ys)
+    vertices = np.stack([x, y, field.heights], axis=-1).reshape(-1, 3)
+    rows, columns = field.heights.shape
+    corner = (np.arange(rows - 1)[:, None] * columns + np.arange(columns - 1)[None, :]).ravel()
+    # (i, j) -> (i+1, j) -> (i+1, j+1) and (i, j) -> (i+1, j+1) -> (i, j+1): counter-clockwise seen from above.
+    faces = np.concatenate(
+        [
+            np.stack([corner, corner + 1, corner + columns + 1], axis=1),
+            np.stack([corner, corner + columns + 1, corner + columns], axis=1),
+        ]
+    )
+    return Mesh(vertices, faces)
+
+
+def add_static(
+    client: int, static: Sequence[tuple[Static, Mesh | None]], friction: float, restitution: float
+) -> tuple[int, ...]:
+    """Static bodies (mass 0) for terrain entries, with the floor's material: convex meshes as their hulls, height
+    fields as concave triangle meshes."""
+    bodies = []
+    for entry, mesh in static:
+        if entry.heightfield is not None:
+            surface = heightfield_mesh(entry)
+            shape = pybullet.createCollisionShape(
+                pybullet.GEOM_MESH,
+                vertices=surface.vertices.tolist(),
+                indices=surface.faces.ravel().tolist(),
+                flags=pybullet.GEOM_FORCE_CONCAVE_TRIMESH,
+                physicsClientId=client,
+            )
+        else:
+            shape = convex_compound(client, [mesh])
+        body = pybullet.createMultiBody(
+            0.0,
+            shape,
+            basePosition=entry.pose[:3].tolist(),
+            baseOrientation=rotations.wxyz_to_xyzw(entry.pose[3:]).tolist(),
+            physicsClientId=client,
+        )
+        pybullet.changeDynamics(
+            body,
+            -1,
+            lateralFriction=friction,
+            restitution=restitution,
+            rollingFriction=0.0,
+            spinningFriction=0.0,
+            collisionMargin=0.0,
+            physicsClientId=client,
+        )
+        bodies.append(body)
+    return tuple(bodies)
 
 
 def parking_spot(k: int) -> tuple[float, float, float]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from contactbench.generation.articulated import Elbow, ElbowScene, sample_elbow_state
 from contactbench.generation.bullet import (
     BODY_DYNAMICS_OVERRIDES,
     CONTACT_KEYS,
@@ -25,10 +26,22 @@ from contactbench.generation.bullet import (
     recorded_motion,
 )
 from contactbench.generation.effects import NONE, ConcealedEffects
-from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
+from contactbench.generation.nonconvex import nonconvex_shape
+from contactbench.generation.scenes import ELBOW, BulletSettings, SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, solid
+from contactbench.generation.terrain import terrain
+from contactbench.ground import Ground
 from contactbench.meshes import Mesh
-from contactbench.recordings import FORMAT, VERSION, Recordings, Split, write_recordings
+from contactbench.recordings import (
+    FORMAT,
+    SCENE_VERSION,
+    VERSION,
+    Recordings,
+    Split,
+    Static,
+    static_entries,
+    write_recordings,
+)
 
 SPLIT_SIZES = {"train": 275, "val": 165, "test": 110}  # tosses per variant (paper, Section 3)
 SEEDING = (
@@ -38,8 +51,12 @@ SEEDING = (
 
 
 def derive_seed(seed: int, spec: SceneSpec) -> int:
-    """The variant's own seed: independent across variants, and unchanged by fields that are not its identity."""
+    """The variant's own seed: independent across variants, and unchanged by fields that are not its identity (a
+    shape or ground joins the identity only when set, so the paper's variants keep their seeds)."""
     identity = [int(seed), spec.name, spec.friction, spec.restitution, spec.faces, spec.bodies]
+    identity += [spec.shape] if spec.shape else []
+    identity += [spec.ground] if spec.ground != "flat" else []
+    identity += [spec.joint_damping] if spec.joint_damping else []
     digest = hashlib.sha256(json.dumps(identity).encode("utf-8")).digest()
     return int.from_bytes(digest[:8], "little") >> 1
 
@@ -52,12 +69,15 @@ def toss_rng(derived_seed: int, toss: int) -> np.random.Generator:
 @dataclass(frozen=True)
 class _Job:
     mesh: Mesh
+    pieces: tuple[Mesh, ...]
+    static: tuple[tuple[Static, Mesh | None], ...]
     spec: SceneSpec
     settings: BulletSettings
     derived_seed: int
     split_sizes: tuple[tuple[str, int], ...]
     record_contacts: bool
     effects: ConcealedEffects = NONE
+    elbow: Elbow | None = None
 
     def place(self, toss: int) -> str:
         """Where toss `toss` lands, e.g. "val toss 3"."""
@@ -84,7 +104,11 @@ class _TossRunner:
 
     def __init__(self, job: _Job):
         self.job = job
-        self.scene = BulletScene(job.mesh, job.spec, job.settings, job.effects)
+        if job.elbow is not None:
+            self.scene = ElbowScene(job.elbow, job.spec, job.settings)
+        else:
+            self.scene = BulletScene(job.mesh, job.spec, job.settings, job.effects, job.pieces, job.static)
+        self.ground = Ground.of_static(0.0, [entry for entry, _ in job.static], {e.mesh: m for e, m in job.static})
 
     def __call__(self, tosses: range) -> _Chunk:
         job, frames, bodies = self.job, self.job.settings.frames, self.job.spec.bodies
@@ -95,7 +119,11 @@ class _TossRunner:
         )
         for row, toss in enumerate(tosses):
             try:
-                poses, velocities = sample_initial_state(job.spec, job.mesh, toss_rng(job.derived_seed, toss))
+                rng = toss_rng(job.derived_seed, toss)
+                if job.elbow is not None:
+                    poses, velocities = sample_elbow_state(job.spec, job.elbow, rng)
+                else:
+                    poses, velocities = sample_initial_state(job.spec, job.mesh, rng, self.ground)
             except SpawnError as error:
                 raise SpawnError(f"toss {toss} ({job.place(toss)}): {error}") from None
             states[row], wrenches = self.scene.toss(poses, velocities, frames, record_contacts=job.record_contacts)
@@ -215,11 +243,21 @@ def generate_dataset(
     sizes = tuple((str(name), int(size)) for name, size in split_sizes.items())
     if not sizes or any(size < 1 for _, size in sizes):
         raise ValueError(f"every split needs at least one toss, got {dict(split_sizes)}")
-    solid_name = SOLID_NAMES[spec.faces]
-    mesh = solid(spec.faces, settings.width)
+    solid_name = spec.shape or SOLID_NAMES[spec.faces]
+    elbow = Elbow.of(spec.joint_damping, settings.width) if spec.shape == ELBOW else None
+    if elbow is not None:
+        mesh, pieces, solid_name = elbow.link, [], "link"
+    elif spec.shape:
+        mesh, pieces = nonconvex_shape(spec.shape, settings.width)
+    else:
+        mesh, pieces = solid(spec.faces, settings.width), []
+    static_meta, static_meshes = terrain(spec.ground) if spec.ground != "flat" else ([], {})
+    static = tuple((entry, static_meshes.get(entry.mesh)) for entry in static_entries(static_meta))
     derived_seed = derive_seed(seed, spec)
     concealed = ConcealedEffects.named(effects, effect_strength)
-    job = _Job(mesh, spec, settings, derived_seed, sizes, record_contacts, concealed)
+    if elbow is not None and (effects or record_contacts):
+        raise ValueError("the elbow is generated without concealed effects and without contact forces")
+    job = _Job(mesh, tuple(pieces), static, spec, settings, derived_seed, sizes, record_contacts, concealed, elbow)
     name = f"{spec.name}-{variant}" if variant else spec.name
     recorded = _simulate_all(job, min(workers, sum(size for _, size in sizes)), progress, name)
 
@@ -235,10 +273,13 @@ def generate_dataset(
         )
         start += size
     mesh_path = f"meshes/{solid_name}.obj"
-    _, inertia = mesh.mass_properties(settings.mass)
+    piece_paths = [f"meshes/{solid_name}_piece{i}.obj" for i in range(len(pieces))]
+    body_mass = settings.mass / spec.bodies if elbow is not None else settings.mass  # the elbow weighs one body
+    _, inertia = mesh.mass_properties(body_mass)
+    body_pieces = {"pieces": piece_paths} if pieces else {}
     meta = {
         "format": FORMAT,
-        "version": VERSION,
+        "version": SCENE_VERSION if pieces or static or elbow else VERSION,
         "name": name,
         "dt": settings.dt,
         "gravity": list(settings.gravity),
@@ -247,11 +288,14 @@ def generate_dataset(
             {
                 "name": f"{solid_name}_{k}",
                 "mesh": mesh_path,
-                "mass": settings.mass,
+                "mass": body_mass,
                 "inertia_diagonal": np.diag(inertia).tolist(),
+                **body_pieces,
             }
             for k in range(spec.bodies)
         ],
+        **({"static": static_meta} if static_meta else {}),
+        **({"joints": [elbow.joint_entry()]} if elbow else {}),
         "splits": {split_name: f"{split_name}.npz" for split_name, _ in sizes},
         "real": False,
         "generator": {
@@ -279,7 +323,8 @@ def generate_dataset(
             "effect_strength": float(effect_strength),
         },
     }
-    return write_recordings(out_dir, Recordings(meta=meta, meshes={mesh_path: mesh}, splits=splits))
+    meshes = {mesh_path: mesh, **dict(zip(piece_paths, pieces)), **static_meshes}
+    return write_recordings(out_dir, Recordings(meta=meta, meshes=meshes, splits=splits))
 
 
 def _plain(fields: dict) -> dict:

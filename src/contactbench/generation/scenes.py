@@ -6,11 +6,17 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
+from contactbench.generation.nonconvex import SHAPES
 from contactbench.generation.solids import SOLID_NAMES
+from contactbench.generation.terrain import GROUNDS
+from contactbench.ground import Ground
 from contactbench.meshes import Mesh
+
+ELBOW = "elbow"  # the ARTICULATED family's two-link body (articulated.py)
 
 
 class SpawnError(RuntimeError):
@@ -47,6 +53,9 @@ class SceneSpec:
     restitution: float
     faces: int = 6  # which solid (6 = cube), see solids.SOLID_NAMES
     bodies: int = 1
+    shape: str = ""  # a non-convex body (nonconvex.SHAPES) or the two-link "elbow"; "" = the solid with `faces` faces
+    ground: str = "flat"  # the floor alone, or a terrain on it (terrain.GROUNDS)
+    joint_damping: float = 0.0  # N m s/rad in the elbow's hinge
     center_bias_speed: float = (
         0.0  # m/s subtracted from each body's xy velocity along its direction from the centre; 0 disables
     )
@@ -59,8 +68,9 @@ class SceneSpec:
     def __post_init__(self) -> None:
         # Hydra hands over ints where floats are meant and ListConfigs where tuples are; normalise so the
         # spec hashes, compares and serialises the same however it was built.
-        object.__setattr__(self, "name", str(self.name))
-        _set_floats(self, "friction", "restitution", "center_bias_speed")
+        for key in ("name", "shape", "ground"):
+            object.__setattr__(self, key, str(getattr(self, key)))
+        _set_floats(self, "friction", "restitution", "center_bias_speed", "joint_damping")
         _set_vectors(self, "position_low", "position_high", "velocity_low", "velocity_high")
         for key in ("faces", "bodies", "spawn_attempts"):
             object.__setattr__(self, key, int(getattr(self, key)))
@@ -80,6 +90,23 @@ class SceneSpec:
         if self.faces not in SOLID_NAMES:
             raise ContactbenchError(
                 f"scene {self.name!r}: faces is {self.faces} (expected one of {sorted(SOLID_NAMES)})"
+            )
+        if self.shape and self.shape not in (*SHAPES, ELBOW):
+            raise ContactbenchError(
+                f"scene {self.name!r}: shape is {self.shape!r} (expected one of {[*SHAPES, ELBOW]})"
+            )
+        if (self.shape == ELBOW and self.bodies != 2) or (self.joint_damping and self.shape != ELBOW):
+            raise ContactbenchError(
+                f"scene {self.name!r}: the elbow has bodies 2 (its links) and only it has joint damping; got bodies "
+                f"{self.bodies}, shape {self.shape!r}, joint_damping {self.joint_damping:g}"
+            )
+        if not (math.isfinite(self.joint_damping) and self.joint_damping >= 0):
+            raise ContactbenchError(
+                f"scene {self.name!r}: joint_damping is {self.joint_damping:g} (expected N m s/rad >= 0)"
+            )
+        if self.ground != "flat" and self.ground not in GROUNDS:
+            raise ContactbenchError(
+                f"scene {self.name!r}: ground is {self.ground!r} (expected 'flat' or one of {list(GROUNDS)})"
             )
         if self.bodies < 1:
             raise ContactbenchError(f"scene {self.name!r}: bodies is {self.bodies} (expected at least 1)")
@@ -106,14 +133,21 @@ def _set_vectors(instance: object, *keys: str) -> None:
         object.__setattr__(instance, key, vector)
 
 
-def sample_initial_state(spec: SceneSpec, mesh: Mesh, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Initial poses [K, 7] (position, quaternion w-first) and velocities [K, 6] (linear, angular; world frame)."""
+def sample_initial_state(
+    spec: SceneSpec, mesh: Mesh, rng: np.random.Generator, ground: Ground | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Initial poses [K, 7] (position, quaternion w-first) and velocities [K, 6] (linear, angular; world frame).
+
+    Over a terrain (`ground`), heights are drawn above the highest ground under the body's footprint, so a toss
+    starts as high above the terrain as it would above the floor."""
     if spec.bodies == 1:
         orientation = rotations.uniform_random(rng, 1)[0]
         position = rng.uniform(spec.position_low, spec.position_high)
         poses = np.concatenate([position, orientation])[None]
     else:
         poses = _spawn_without_overlap(spec, mesh, rng)
+    if ground is not None and not ground.flat:
+        poses[:, 2] += [_ground_under(ground, mesh, pose) - ground.floor_z for pose in poses]
     linear = rng.uniform(spec.velocity_low, spec.velocity_high, size=(spec.bodies, 3))
     if spec.center_bias_speed > 0:
         centre = (np.asarray(spec.position_low[:2]) + np.asarray(spec.position_high[:2])) / 2.0
@@ -124,6 +158,15 @@ def sample_initial_state(spec: SceneSpec, mesh: Mesh, rng: np.random.Generator) 
         linear[:, :2] -= spec.center_bias_speed * direction
     velocities = np.concatenate([linear, np.zeros((spec.bodies, 3))], axis=1)
     return poses, velocities
+
+
+def _ground_under(ground: Ground, mesh: Mesh, pose: np.ndarray, samples: int = 7) -> float:
+    """The highest ground under the x-y box of the mesh at `pose` (a grid of samples, and the vertices)."""
+    placed = pose[:3] + rotations.rotate(pose[3:], mesh.vertices)
+    low, high = placed[:, :2].min(axis=0), placed[:, :2].max(axis=0)
+    grid = np.stack(np.meshgrid(*(np.linspace(a, b, samples) for a, b in zip(low, high))), axis=-1).reshape(-1, 2)
+    points = torch.from_numpy(np.concatenate([grid, placed[:, :2]]))
+    return float(ground.height(points).max())
 
 
 def _spawn_without_overlap(spec: SceneSpec, mesh: Mesh, rng: np.random.Generator) -> np.ndarray:

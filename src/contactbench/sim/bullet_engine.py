@@ -40,7 +40,7 @@ from contactbench.generation.bullet import (
 from contactbench.generation.scenes import BulletSettings
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
-from contactbench.sim.engines import Dimension, Engine
+from contactbench.sim.engines import Dimension, Engine, require_flat
 from contactbench.sim.stepped import SteppedRollouts, World
 from contactbench.values import freeze_numbers
 
@@ -263,6 +263,9 @@ class BulletEngine(Engine):
     """PyBullet 3 (Bullet's sequential-impulse solver), the engine that generated the synthetic datasets."""
 
     name = "bullet"
+
+    def check_scene(self, scene: Scene) -> None:
+        require_flat(scene, "PyBullet")
 
     def default_parameters(self, n_bodies: int) -> BulletParameters:
         """PyBullet's own body defaults: friction 0.5, restitution 0, no spinning or rolling friction, rigid contact."""

@@ -102,7 +102,7 @@ from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
 from contactbench.rotations import normalize
-from contactbench.sim.engines import Dimension, Engine
+from contactbench.sim.engines import Dimension, Engine, require_flat
 from contactbench.sim.stepped import SteppedRollouts, World
 from contactbench.values import freeze_numbers
 
@@ -513,6 +513,7 @@ class DrakeEngine(Engine):
         }
 
     def check_scene(self, scene: Scene) -> None:
+        require_flat(scene, "Drake")
         if scene.n_bodies > 1:
             raise NotApplicable(
                 f"the Drake engine simulates single-body scenes; {scene.name} has {scene.n_bodies} bodies (drake "

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.recordings import Scene
 
 # Engine name -> the class implementing it, imported on first use (Drake is a large import).
@@ -85,3 +85,13 @@ def engine(name: str) -> Engine:
         raise ContactbenchError(f"unknown engine {name!r} (expected one of {', '.join(ENGINE_CLASSES)})")
     module, _, attribute = ENGINE_CLASSES[name].partition(":")
     return getattr(importlib.import_module(module), attribute)()
+
+
+def require_flat(scene: Scene, engine_name: str) -> None:
+    """NotApplicable for scenes beyond free convex-collided bodies on the flat floor (recordings version 2's pieces,
+    terrain and joints), which only MuJoCo's scene builder writes so far."""
+    if not scene.flat:
+        raise NotApplicable(
+            f"the {engine_name} engine simulates free convex bodies on the flat floor; {scene.name} has non-convex "
+            "bodies, terrain or joints (model=sysid and mujoco_default simulate those)"
+        )

@@ -36,7 +36,8 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.kinematics import hinge_child, hinge_coordinates
+from contactbench.recordings import Joint, Scene, Static
 from contactbench.values import freeze_numbers
 
 MUJOCO_DEFAULT_SOLREF = (0.02, 1.0)  # time constant (s), damping ratio: MuJoCo's default for every contact
@@ -151,24 +152,36 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
         )
     if substeps < 1:
         raise ContactbenchError(f"substeps must be a positive integer, got {substeps}")
-    mesh_names = {path: f"mesh{i}" for i, path in enumerate(dict.fromkeys(b.mesh for b in dataset.bodies))}
+    pieces = [_piece_paths(dataset, k) for k in range(dataset.n_bodies)]
+    static = dataset.static
+    used = [path for paths in pieces for path in paths] + [entry.mesh for entry in static if entry.mesh is not None]
+    mesh_names = {path: f"mesh{i}" for i, path in enumerate(dict.fromkeys(used))}
     spin_roll = (params.torsional_friction, params.rolling_friction)
     assets = [
         f'<mesh name="{name}" vertex="{_numbers(dataset.meshes[path].vertices)}" '
         f'face="{" ".join(str(int(i)) for i in dataset.meshes[path].faces.ravel())}"/>'
         for path, name in mesh_names.items()
-    ]
+    ] + [_hfield_asset(i, entry) for i, entry in enumerate(static) if entry.heightfield is not None]
     effects = params.effects
+    ground_contact = (
+        f'condim="{params.condim}" contype="0" conaffinity="0" solref="{_numbers(params.floor_solref)}" '
+        f'solimp="{_numbers(params.floor_impedance)}" friction="{_numbers((params.floor_friction,) + spin_roll)}"'
+    )
+    ground_geoms = ["floor"] + [f"static{i}" for i in range(len(static))]
     coms, inertias = inertials(dataset, effects)
-    bodies, pairs = [], []
+    bodies, pairs, geom_names = {}, [], []
     for k, body in enumerate(dataset.bodies):
         com, inertia = coms[k], inertias[k]
         full_inertia = (inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2])
-        bodies.append(
-            f'<body name="body{k}"><freejoint name="joint{k}"/>'
-            f'<inertial pos="{_numbers(com)}" mass="{body.mass!r}" fullinertia="{_numbers(full_inertia)}"/>'
-            f'<geom name="geom{k}" type="mesh" mesh="{mesh_names[body.mesh]}" condim="{params.condim}" '
-            f'friction="{_numbers((params.object_friction[k],) + spin_roll)}"/></body>'
+        names = [f"geom{k}"] if len(pieces[k]) == 1 else [f"geom{k}_{i}" for i in range(len(pieces[k]))]
+        geom_names.append(names)
+        geoms = "".join(
+            f'<geom name="{name}" type="mesh" mesh="{mesh_names[path]}" condim="{params.condim}" '
+            f'friction="{_numbers((params.object_friction[k],) + spin_roll)}"/>'
+            for name, path in zip(names, pieces[k])
+        )
+        bodies[k] = (
+            f'<inertial pos="{_numbers(com)}" mass="{body.mass!r}" fullinertia="{_numbers(full_inertia)}"/>{geoms}'
         )
         sliding = max(params.object_friction[k], params.floor_friction)
         # A floor contact's first tangent is the floor's y axis, its second the x axis (MuJoCo's plane frame).
@@ -176,11 +189,22 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
             sliding / np.sqrt(effects.friction_anisotropy),
             sliding * np.sqrt(effects.friction_anisotropy),
         )
-        pairs.append(
-            f'<pair geom1="floor" geom2="geom{k}" condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
+        pairs += [
+            f'<pair geom1="{ground}" geom2="{name}" condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
             f'solimp="{_numbers(params.floor_impedance)}" '
             f'friction="{_numbers((along_y, along_x, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
-        )
+            for name in names
+            for ground in ground_geoms
+        ]
+    for joint in dataset.joints:  # MuJoCo leaves a body and its parent out of contact: the pair puts them back
+        linked = max(params.object_friction[joint.parent], params.object_friction[joint.child])
+        pairs += [
+            f'<pair geom1="{first}" geom2="{second}" condim="{params.condim}" '
+            f'friction="{_numbers((linked, linked, params.torsional_friction) + (params.rolling_friction,) * 2)}"/>'
+            for first in geom_names[joint.parent]
+            for second in geom_names[joint.child]
+        ]
+    statics = [_static_geom(i, entry, mesh_names, ground_contact) for i, entry in enumerate(static)]
     fluid = f' density="{effects.fluid_density!r}" wind="{_numbers(effects.wind)}"' if effects.fluid_density > 0 else ""
     gravity = _numbers(np.asarray(dataset.gravity) * effects.gravity_scale)
     return "\n".join(
@@ -193,11 +217,9 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
             "</asset>",
             "<worldbody>",
             f'<geom name="floor" type="plane" size="0 0 1" pos="0 0 {dataset.floor_z + effects.floor_offset!r}" '
-            f'quat="{_numbers(rotations.tilt(*effects.floor_tilt))}" contype="0" conaffinity="0" '
-            f'condim="{params.condim}" solref="{_numbers(params.floor_solref)}" '
-            f'solimp="{_numbers(params.floor_impedance)}" '
-            f'friction="{_numbers((params.floor_friction,) + spin_roll)}"/>',
-            *bodies,
+            f'quat="{_numbers(rotations.tilt(*effects.floor_tilt))}" {ground_contact}/>',
+            *statics,
+            *_body_tree(dataset, bodies),
             "</worldbody>",
             "<contact>",
             *pairs,
@@ -207,9 +229,138 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
     )
 
 
+def _body_tree(dataset: Scene, contents: dict[int, str]) -> list[str]:
+    """Every body's XML: free bodies at the top, each hinge's child nested in its parent, placed as at angle 0."""
+    child_joint = {joint.child: (j, joint) for j, joint in enumerate(dataset.joints)}
+
+    def body(k: int) -> str:
+        if k in child_joint:
+            j, joint = child_joint[k]
+            limits = f' limited="true" range="{_numbers(joint.range)}"' if joint.range is not None else ""
+            head = (
+                f'<body name="body{k}" pos="{_numbers(joint.parent_anchor - joint.child_anchor)}">'
+                f'<joint name="hinge{j}" type="hinge" pos="{_numbers(joint.child_anchor)}" '
+                f'axis="{_numbers(joint.axis)}" damping="{joint.damping!r}"{limits}/>'
+            )
+        else:
+            head = f'<body name="body{k}"><freejoint name="joint{k}"/>'
+        children = "".join(body(joint.child) for joint in dataset.joints if joint.parent == k)
+        return f"{head}{contents[k]}{children}</body>"
+
+    return [body(k) for k in range(dataset.n_bodies) if k not in child_joint]
+
+
+def _piece_paths(dataset: Scene, k: int) -> list[str]:
+    entry = dataset.meta["bodies"][k]
+    return [entry["mesh"]] if dataset.is_convex(k) else list(entry["pieces"])
+
+
+def _hfield_asset(i: int, entry: Static) -> str:
+    """MuJoCo scales a height field's elevation data to [0, 1] and reads its first row at +y: the heights go in
+    shifted to 0 and row-reversed, their range as the size's elevation (the geom's height adds the minimum back)."""
+    heights = entry.heightfield.heights
+    span = max(float(heights.max() - heights.min()), 1e-9)
+    rows, columns = heights.shape
+    half_x, half_y = (size / 2 for size in entry.heightfield.size)
+    return (
+        f'<hfield name="field{i}" nrow="{rows}" ncol="{columns}" size="{half_x!r} {half_y!r} {span!r} {span!r}" '
+        f'elevation="{_numbers((heights - heights.min())[::-1])}"/>'
+    )
+
+
+def _static_geom(i: int, entry: Static, mesh_names: dict[str, str], contact: str) -> str:
+    position = entry.pose[:3].copy()
+    if entry.mesh is not None:
+        shape = f'type="mesh" mesh="{mesh_names[entry.mesh]}"'
+    else:
+        position += rotations.rotate(entry.pose[3:], np.array([0.0, 0.0, entry.heightfield.heights.min()]))
+        shape = f'type="hfield" hfield="field{i}"'
+    return f'<geom name="static{i}" {shape} pos="{_numbers(position)}" quat="{_numbers(entry.pose[3:])}" {contact}/>'
+
+
 def build_model(dataset: Scene, params: ContactParameters, substeps: int = 1) -> mujoco.MjModel:
     """A compiled MuJoCo model of the scene: one free body per recordings body, timestep dt / substeps."""
     return mujoco.MjModel.from_xml_string(scene_xml(dataset, params, substeps))
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Where each recordings body lives in a compiled scene's qpos / qvel: a free body as its free joint, a hinge's
+    child as the joint's angle and rate (its pose and velocity follow from its parent's, kinematics.hinge_child)."""
+
+    n_bodies: int
+    joints: tuple[Joint, ...]
+    free_qpos: dict[int, int]  # body -> qpos address of its free joint (7 entries)
+    free_qvel: dict[int, int]  # body -> qvel address (6 entries)
+    hinge_qpos: tuple[int, ...]  # per joint
+    hinge_qvel: tuple[int, ...]
+
+    @classmethod
+    def of(cls, dataset: Scene, model: mujoco.MjModel) -> StateLayout:
+        joints = tuple(dataset.joints)
+        children = {joint.child for joint in joints}
+        roots = [k for k in range(dataset.n_bodies) if k not in children]
+        return cls(
+            dataset.n_bodies,
+            joints,
+            {k: int(model.joint(f"joint{k}").qposadr[0]) for k in roots},
+            {k: int(model.joint(f"joint{k}").dofadr[0]) for k in roots},
+            tuple(int(model.joint(f"hinge{j}").qposadr[0]) for j in range(len(joints))),
+            tuple(int(model.joint(f"hinge{j}").dofadr[0]) for j in range(len(joints))),
+        )
+
+    @property
+    def free(self) -> bool:
+        """Every body free, in order: qpos and qvel are the recordings' states side by side (pack_state)."""
+        return not self.joints
+
+    def pack(self, poses: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Recordings poses [..., K, 7] and world velocities [..., K, 6] -> qpos [..., nq], qvel [..., nv]."""
+        if self.free:
+            return pack_state(poses, velocities)
+        lead = poses.shape[:-2]
+        qpos = np.zeros(lead + (7 * len(self.free_qpos) + len(self.joints),))
+        qvel = np.zeros(lead + (6 * len(self.free_qvel) + len(self.joints),))
+        free_qvel = body_frame_velocities(poses, velocities)
+        for k, address in self.free_qpos.items():
+            qpos[..., address : address + 3] = poses[..., k, :3]
+            qpos[..., address + 3 : address + 7] = rotations.normalize(poses[..., k, 3:])
+            qvel[..., self.free_qvel[k] : self.free_qvel[k] + 6] = free_qvel[..., k, :]
+        for joint, position_at, velocity_at in zip(self.joints, self.hinge_qpos, self.hinge_qvel):
+            qpos[..., position_at], qvel[..., velocity_at] = hinge_coordinates(
+                poses[..., joint.parent, :],
+                velocities[..., joint.parent, :],
+                poses[..., joint.child, :],
+                velocities[..., joint.child, :],
+                joint,
+            )
+        return qpos, qvel
+
+    def unpack(self, qpos: np.ndarray, qvel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """qpos [..., nq], qvel [..., nv] -> recordings poses [..., K, 7] and free-joint velocities [..., K, 6] (world
+        linear, body angular: what a free body's qvel would be)."""
+        if self.free:
+            return (
+                qpos.reshape(*qpos.shape[:-1], self.n_bodies, 7),
+                qvel.reshape(*qvel.shape[:-1], self.n_bodies, 6),
+            )
+        lead = qpos.shape[:-1]
+        poses = np.empty(lead + (self.n_bodies, 7))
+        velocities = np.empty(lead + (self.n_bodies, 6))
+        for k, address in self.free_qpos.items():
+            poses[..., k, :] = qpos[..., address : address + 7]
+            velocities[..., k, :] = world_velocities(
+                poses[..., k, :], qvel[..., self.free_qvel[k] : self.free_qvel[k] + 6]
+            )
+        for joint, position_at, velocity_at in zip(self.joints, self.hinge_qpos, self.hinge_qvel):  # parents first
+            poses[..., joint.child, :], velocities[..., joint.child, :] = hinge_child(
+                poses[..., joint.parent, :],
+                velocities[..., joint.parent, :],
+                joint,
+                qpos[..., position_at],
+                qvel[..., velocity_at],
+            )
+        return poses, body_frame_velocities(poses, velocities)
 
 
 def pack_state(poses: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -28,10 +28,10 @@ from contactbench.sim.mujoco_scene import (
     NO_EFFECTS,
     ContactParameters,
     SceneEffects,
+    StateLayout,
     body_frame_velocities,
     build_model,
     inertials,
-    pack_state,
     world_velocities,
 )
 
@@ -164,6 +164,7 @@ class MujocoRollouts(Rollouts):
             raise ValueError(
                 f"scene has {self.nstate - 1 - reference.nq - reference.nv} unexpected state entries (act/plugin)"
             )
+        self.layout = StateLayout.of(dataset, reference)
         self._data = [mujoco.MjData(reference) for _ in range(self.nthread)]
         self._reference_key = structure_key(reference)
         self._other_data: dict[tuple, list[mujoco.MjData]] = {}
@@ -197,7 +198,7 @@ class MujocoRollouts(Rollouts):
 
     def initial_states(self, poses: np.ndarray, velocities: np.ndarray) -> np.ndarray:
         """Full-physics states [N, nstate] from recordings poses [N, K, 7] and world velocities [N, K, 6]."""
-        qpos, qvel = pack_state(np.asarray(poses, dtype=np.float64), np.asarray(velocities, dtype=np.float64))
+        qpos, qvel = self.layout.pack(np.asarray(poses, dtype=np.float64), np.asarray(velocities, dtype=np.float64))
         states = np.zeros((len(qpos), self.nstate))
         states[:, 0] = START_TIME
         states[:, self._qpos] = qpos
@@ -245,8 +246,7 @@ class MujocoRollouts(Rollouts):
             frames = np.ascontiguousarray(frames)
         frames = frames.reshape(len(models), len(initial), n_steps, self.nstate)
         # Views into the state buffer: copying them out measured at 10-25% of the stepping time.
-        poses = frames[..., self._qpos].reshape(*frames.shape[:3], self.dataset.n_bodies, 7)
-        qvel = frames[..., self._qvel].reshape(*frames.shape[:3], self.dataset.n_bodies, 6)
+        poses, qvel = self.layout.unpack(frames[..., self._qpos], frames[..., self._qvel])
         expected_time = START_TIME + self.timestep * self.substeps * np.arange(1, n_steps + 1)
         diverged = np.maximum.accumulate(np.abs(frames[..., 0] - expected_time) > self.timestep / 2, axis=-1)
         poses[diverged] = np.nan

@@ -20,6 +20,8 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import BatchSampler, DataLoader, Dataset, Sampler, SequentialSampler
 
+from contactbench.errors import NotApplicable
+from contactbench.ground import Ground
 from contactbench.models.base import ContactModel
 from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, MeshScene, collision_radius
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
@@ -193,6 +195,7 @@ class GNNModule(pl.LightningModule):
         options = {
             "dt": dataset.dt,
             "floor_z": dataset.floor_z,
+            "ground": Ground.of(dataset),
             "radius": collision_radius(scene.widths, collision_radius_fraction),
             "velocity_history": velocity_history,
             "latent_size": latent_size,
@@ -209,9 +212,16 @@ class GNNModule(pl.LightningModule):
                 separate_bodies=separate_bodies,
                 solid_inertia=inertia_per_mass(dataset, scene) if solid_inertia else None,
                 floor_gate=None if floor_gate_fraction is None else floor_gate_fraction * float(np.max(scene.widths)),
+                joints=tuple(dataset.joints),
+                masses=np.array([body.mass for body in dataset.bodies]),
                 **options,
             )
         else:
+            if dataset.joints:
+                raise NotApplicable(
+                    f"{dataset.name}: the paper's GNN moves every vertex on its own and keeps no joint; "
+                    "model=gnn (rigid) keeps hinges"
+                )
             self.simulator = LearnedSimulator(scene, **options)
 
     def setup(self, stage: str) -> None:

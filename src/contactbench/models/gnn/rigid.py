@@ -13,7 +13,7 @@ rigidity holds at every step by construction, as Allen et al. (2022) obtain with
   outputs act as forces on the solid body, so a push at one vertex turns a cube as a blow there would, three times
   as fast as the least-squares fit has it (Newton–Euler, exactly where the vertex centroid is the centre of mass,
   as for every benchmark solid and the real cube). Frictioncubes μ = 0.5, val position 0.281 -> 0.199 widths; the
-  real cube, whose impacts and tracking are not PyBullet's, 0.218 -> 0.295 (see docs/BENCHMARK.md).
+  real cube, whose impacts and tracking are not PyBullet's, 0.218 -> 0.295 (commit a754e2c).
 - Contact gate: a vertex contributes only when it is within `contact_distance` of the floor or has a collision edge
   to another body; with floor_gate (the default) only when within floor_gate of the floor now or at the next
   frame in free flight, so nothing acts on a body a step or more before it lands. Far from everything a body
@@ -49,7 +49,7 @@ from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.simulator import STATISTICS_CHUNK, LearnedSimulator, check_same_scene, random_walk_noise
 from contactbench.protocol import Context
-from contactbench.recordings import Scene, Split
+from contactbench.recordings import Joint, Scene, Split
 
 SEPARATION_SWEEPS = 4  # Jacobi sweeps of the pairwise separation: enough for a stack of five
 
@@ -93,9 +93,12 @@ class RigidLearnedSimulator(LearnedSimulator):
         separate_bodies: bool = False,
         floor_gate: float | None = None,
         solid_inertia: np.ndarray | None = None,
+        joints: tuple[Joint, ...] = (),
+        masses: np.ndarray | None = None,
         **options,
     ):
         self.contact_distance = contact_distance
+        self.joints = tuple(joints)  # parents first (Scene.joints)
         self.floor_gate = floor_gate
         self.separate_bodies = separate_bodies
         super().__init__(scene, dt, floor_z, radius, **options)
@@ -115,6 +118,8 @@ class RigidLearnedSimulator(LearnedSimulator):
         if solid_inertia is not None:  # per unit mass, about the vertex centroid: outputs act as forces on the solid
             geometric_inertia = counts[:, None, None] * torch.as_tensor(np.asarray(solid_inertia, dtype=np.float64))
         self.register_buffer("inverse_geometric_inertia", torch.linalg.inv(geometric_inertia), persistent=False)
+        body_masses = np.ones(scene.n_bodies) if masses is None else np.asarray(masses, dtype=np.float64)
+        self.register_buffer("body_masses", torch.as_tensor(body_masses), persistent=False)
         self.register_buffer("scene_gravity", torch.as_tensor(np.asarray(gravity, dtype=np.float64)), persistent=False)
         self.register_buffer("half_widths", torch.as_tensor(scene.widths / 2, dtype=torch.float64), persistent=False)
         # the acceleration of bodies in free flight, measured on the train split (fit_normalisation); meta's until then
@@ -149,7 +154,7 @@ class RigidLearnedSimulator(LearnedSimulator):
         """[..., K] True where no vertex of the body is within the contact distance of the floor or the collision
         radius of another body's vertex (NaN poses count as in contact)."""
         vertices = self.vertices(poses)  # [..., n, 3]
-        near_floor = ~(vertices[..., 2] - self.floor_z >= self.contact_distance)
+        near_floor = ~(self.clearance(vertices) >= self.contact_distance)
         gap = torch.cdist(vertices.flatten(0, -3), vertices.flatten(0, -3)).reshape(
             *vertices.shape[:-1], vertices.shape[-2]
         )
@@ -185,12 +190,21 @@ class RigidLearnedSimulator(LearnedSimulator):
         finer heights in units of the contact distance: now, and at the next frame if the vertex flew on freely
         (h + (v_z + g_z dt) dt, negative when the next step would reach the floor: where an impact is decided)."""
         batch, _, n_nodes, _ = vertices.shape
-        height = vertices[:, -1, :, 2:] - self.floor_z
-        vertical_speed = (vertices[:, -1, :, 2:] - vertices[:, -2, :, 2:]) / self.dt
-        free_flight = height + (vertical_speed + self.scene_gravity[2] * self.dt) * self.dt
+        if self.ground.flat:
+            height = vertices[:, -1, :, 2:] - self.floor_z
+            vertical_speed = (vertices[:, -1, :, 2:] - vertices[:, -2, :, 2:]) / self.dt
+            free_flight = height + (vertical_speed + self.scene_gravity[2] * self.dt) * self.dt
+        else:
+            height = self.clearance(vertices[:, -1])[..., None]
+            free_flight = self.clearance(self.free_flight_step(vertices))[..., None]
         fine = (torch.cat([height, free_flight], dim=-1) / self.contact_distance).clamp(min=-1.0, max=1.0)
         paper = self.node_features(vertices).reshape(batch, n_nodes, -1)
         return torch.cat([paper, fine], dim=-1).flatten(0, 1).float()
+
+    def free_flight_step(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Where the newest vertices [B, n, 3] of a history [B, H + 1, n, 3] are a frame later in free flight."""
+        velocity = (vertices[:, -1] - vertices[:, -2]) / self.dt + self.scene_gravity * self.dt
+        return vertices[:, -1] + velocity * self.dt
 
     def edge_features(self, current: torch.Tensor, edge_index: torch.Tensor, n_mesh_edges: int) -> torch.Tensor:
         """The paper's 9 edge features, and on collision edges how deep the receiver is inside the sender's body.
@@ -230,14 +244,17 @@ class RigidLearnedSimulator(LearnedSimulator):
             edge_index,
             self.edge_features(current_single, edge_index, n_mesh_edges),
         ).reshape(current.shape)
-        height = current[..., 2] - self.floor_z
+        height = self.clearance(current)
         if self.floor_gate is None:
             near = height < self.contact_distance
         else:  # within floor_gate of the floor now, or at the next frame if it flew on freely
-            following = (
-                height
-                + ((current[..., 2] - vertices[:, -2, :, 2]) / self.dt + self.scene_gravity[2] * self.dt) * self.dt
-            )
+            if self.ground.flat:
+                following = (
+                    height
+                    + ((current[..., 2] - vertices[:, -2, :, 2]) / self.dt + self.scene_gravity[2] * self.dt) * self.dt
+                )
+            else:
+                following = self.clearance(self.free_flight_step(vertices))
             near = torch.minimum(height, following) < self.floor_gate
         touched = torch.zeros(current.shape[0] * current.shape[1], dtype=torch.bool, device=current.device)
         touched[edge_index[1, n_mesh_edges:]] = True
@@ -279,7 +296,39 @@ class RigidLearnedSimulator(LearnedSimulator):
         """The pose frame [B, K, 7] after poses [B, H + 1, K, 7], with the predicted accelerations (bodies pushed apart,
         when the simulator separates them)."""
         following = self.integrate(history, *self.accelerations(history))
-        return self.separate(following) if self.separate_bodies and self.scene.n_bodies > 1 else following
+        if self.separate_bodies and self.scene.n_bodies > 1:
+            following = self.separate(following)
+        return self.keep_joints(following) if self.joints else following
+
+    # ------------------------------------------------------------ joints kept
+
+    def keep_joints(self, poses: torch.Tensor) -> torch.Tensor:
+        """Poses [B, K, 7] with every hinge closed, parents first: the child turned onto the nearest pure turn about
+        the axis relative to its parent, then both moved along the anchors' gap in inverse proportion to their masses
+        (the centre of mass of the pair stays where the network put it). A position projection like `separate`: the
+        next step's differenced velocities follow the joint."""
+        poses = poses.clone()
+        for joint in self.joints:
+            parent, child = poses[:, joint.parent], poses[:, joint.child]
+            axis = torch.as_tensor(joint.axis, dtype=poses.dtype, device=poses.device)
+            relative = quaternions.multiply(quaternions.conjugate(parent[:, 3:]), child[:, 3:])
+            half_angle = torch.atan2(relative[:, 1:] @ axis, relative[:, 0])[:, None]
+            turn = torch.cat([torch.cos(half_angle), torch.sin(half_angle) * axis], dim=-1)
+            child_orientation = quaternions.multiply(parent[:, 3:], turn)
+            anchors = [
+                pose[:, :3] + quaternions.rotate(orientation, torch.as_tensor(anchor, dtype=poses.dtype))
+                for pose, orientation, anchor in (
+                    (parent, parent[:, 3:], joint.parent_anchor),
+                    (child, child_orientation, joint.child_anchor),
+                )
+            ]
+            gap = anchors[1] - anchors[0]
+            masses = self.body_masses[joint.parent], self.body_masses[joint.child]
+            parent_share = masses[1] / (masses[0] + masses[1])
+            poses[:, joint.parent, :3] = parent[:, :3] + parent_share * gap
+            poses[:, joint.child, :3] = child[:, :3] - (1 - parent_share) * gap
+            poses[:, joint.child, 3:] = child_orientation
+        return poses
 
     # ------------------------------------------------------------ bodies apart
 

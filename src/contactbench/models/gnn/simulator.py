@@ -8,7 +8,8 @@ Design choices (paper §4.3 after Sanchez-Gonzalez et al. 2020 and Allen et al. 
   a boundary feature, not a set of nodes: a flat infinite floor has no vertices of its own, and a clipped distance
   tells each vertex how near it is as directly as an edge would. Negative heights (penetration; the real cube's
   tracked floor is 2 mm below z = 0) are kept, unclipped. No body-type or static flag: every body of the benchmark
-  scenes is free, and the rest-shape edge features already tell meshes apart.
+  scenes is free, and the rest-shape edge features already tell meshes apart. Over terrain (a ramp, a step, a height
+  field: ground.py) the height is the ground's signed distance, and the ground's normal there joins it (3 more).
 - Edge features (9): sender − receiver displacement divided by the collision radius and its norm, in the current
   positions and in the rest shape (the rest part is zero for collision edges, which join different bodies), and a
   flag that is 1 on collision edges.
@@ -29,6 +30,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from contactbench.ground import Ground
 from contactbench.models.base import ContactModel
 from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.network import EncodeProcessDecode
@@ -68,12 +70,16 @@ class LearnedSimulator(nn.Module):
         message_passing_steps: int = 10,
         hidden_layers: int = 2,
         noise_std: float = 3e-4,
+        ground: Ground | None = None,
     ):
         super().__init__()
         self.scene = scene
         self.body_slices = scene.body_slices()
         self.dt = dt
-        self.floor_z = floor_z
+        self.ground = Ground(float(floor_z), [], [], []) if ground is None else ground
+        self.floor_z = self.ground.floor_z
+        # Over terrain a vertex also needs the way out of the ground (its normal): three more node features.
+        self.ground_normal_features = 0 if self.ground.flat else 3
         self.radius = radius
         self.velocity_history = velocity_history
         self.noise_std = noise_std
@@ -90,7 +96,7 @@ class LearnedSimulator(nn.Module):
         self.register_buffer("acceleration_std", torch.ones(3))
         self.register_buffer("normalisation_fitted", torch.tensor(False))
         self.network = EncodeProcessDecode(
-            node_input_size=3 * velocity_history + 1 + self.extra_node_features,
+            node_input_size=3 * velocity_history + 1 + self.ground_normal_features + self.extra_node_features,
             edge_input_size=EDGE_FEATURES + self.extra_edge_features,
             output_size=3,
             latent_size=latent_size,
@@ -130,12 +136,22 @@ class LearnedSimulator(nn.Module):
 
     # ------------------------------------------------------------ features and one step
 
+    def clearance(self, points: torch.Tensor) -> torch.Tensor:
+        """The ground's signed distance [...] at points [..., 3]: the height above the floor on flat scenes."""
+        if self.ground.flat:
+            return points[..., 2] - self.floor_z
+        return self.ground.distance(points)[0]
+
     def node_features(self, positions: torch.Tensor) -> torch.Tensor:
-        """positions [B, H + 1, n, 3] -> [B * n, 3H + 1]."""
+        """positions [B, H + 1, n, 3] -> [B * n, 3H + 1] (and the ground's normal, 3 more, over terrain)."""
         velocities = (torch.diff(positions, dim=1) / self.dt - self.velocity_mean) / self.velocity_std
         history = velocities.permute(0, 2, 1, 3).flatten(2)
-        height = (positions[:, -1, :, 2:] - self.floor_z).clamp(max=self.radius) / self.radius
-        return torch.cat([history, height], dim=-1).flatten(0, 1)
+        if self.ground.flat:
+            height = (positions[:, -1, :, 2:] - self.floor_z).clamp(max=self.radius) / self.radius
+            return torch.cat([history, height], dim=-1).flatten(0, 1)
+        distance, normal = self.ground.distance(positions[:, -1])
+        height = distance[..., None].clamp(max=self.radius) / self.radius
+        return torch.cat([history, height, normal], dim=-1).flatten(0, 1)
 
     def edge_features(self, current: torch.Tensor, edge_index: torch.Tensor, n_mesh_edges: int) -> torch.Tensor:
         """current positions [B, n, 3], edge index of the stacked graphs (mesh edges first) -> [E, 9]."""

@@ -53,6 +53,8 @@ def single_body_scene(dataset: Scene) -> SingleBodyScene:
         raise SingleBodyError(
             f"the hybrid model supports single-body datasets; {dataset.name} has {dataset.n_bodies} bodies"
         )
+    if dataset.static:
+        raise NotApplicable(f"the hybrid model's LCP knows the flat floor only; {dataset.name} has terrain")
     mesh = dataset.body_mesh(0)
     com, inertia = dataset.inertial(0)
     body = RigidBody(

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench import rotations
+from contactbench.errors import NotApplicable
 from contactbench.kinematics import world_vertices
 from contactbench.recordings import Scene
 from contactbench.sim.rollout import kinetic_energies
@@ -45,6 +46,11 @@ class Bodies:
 
     @classmethod
     def of(cls, dataset: Scene) -> Bodies:
+        if dataset.static or dataset.joints:
+            raise NotApplicable(
+                f"the residual correction is projected against the flat floor, body by body; {dataset.name} has "
+                "terrain or joints"
+            )
         properties = [dataset.inertial(k) for k in range(dataset.n_bodies)]
         return cls(
             vertices=tuple(np.asarray(dataset.body_mesh(k).vertices, dtype=float) for k in range(dataset.n_bodies)),
