@@ -9,8 +9,10 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 
-from contactbench import metrics, rotations
+from contactbench import metrics, rotations, runs
+from contactbench.config import CONFIG_DIR
 from contactbench.errors import NotApplicable
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.nonconvex import SHAPES, nonconvex_shape
@@ -305,3 +307,32 @@ def test_metrics_score_joints_and_the_true_ground(elbow, ramp):
     )
     expected = -signed_distance(ground, lowest)[0].min(axis=-1)
     assert result.summary["floor_penetration_m"] == pytest.approx(expected[:, 1:].mean(), rel=1e-9)
+
+
+# ---------------------------------------------------------------- the pipeline
+
+
+@pytest.mark.slow
+def test_train_runs_every_model_on_the_new_families_or_skips_it_in_one_line(tmp_path):
+    """train.py at budget=smoke on the elbow: the GNN fits and scores it (joint errors in metrics.json); the models
+    that know only free bodies on the flat floor refuse it (NotApplicable: one line, the job skipped)."""
+    overrides = [
+        "variant=articulated_0.005",
+        "budget=smoke",
+        "test=true",
+        "generation.split_sizes={train:6,val:4,test:4}",
+        f"paths.log_dir={tmp_path}/outputs",
+        f"paths.data_dir={tmp_path}/data",
+    ]
+
+    def config(model: str):
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            return compose(config_name="train", overrides=[*overrides, f"model={model}"])
+
+    runs.train(config("gnn"), tmp_path / "gnn")
+    scored = json.loads((tmp_path / "gnn" / "test" / "metrics.json").read_text())
+    assert scored["joint_gap_m"] < 1e-9 and scored["joint_axis_error_rad"] < 1e-9  # the GNN keeps the hinge
+    assert np.isfinite(scored["pos_err"])
+    for model in ("sysid_bullet", "hybrid", "residual", "gnn_paper"):
+        with pytest.raises(NotApplicable):
+            runs.train(config(model), tmp_path / model)

@@ -57,6 +57,20 @@ class HeightField:
             np.linspace(-self.size[1] / 2, self.size[1] / 2, rows),
         )
 
+    def surface(self) -> Mesh:
+        """The surface as triangles in the entry's frame (open, counter-clockwise seen from above)."""
+        x, y = np.meshgrid(*self.grid())
+        vertices = np.stack([x, y, self.heights], axis=-1).reshape(-1, 3)
+        rows, columns = self.heights.shape
+        corner = (np.arange(rows - 1)[:, None] * columns + np.arange(columns - 1)[None, :]).ravel()
+        faces = np.concatenate(
+            [
+                np.stack([corner, corner + 1, corner + columns + 1], axis=1),
+                np.stack([corner, corner + columns + 1, corner + columns], axis=1),
+            ]
+        )
+        return Mesh(vertices, faces)
+
 
 @dataclass(frozen=True)
 class Static:

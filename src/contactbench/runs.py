@@ -36,17 +36,18 @@ def generated_folder(cfg: DictConfig) -> tuple[str, Path]:
     return variant, path
 
 
-def _crossed_variant(cfg: DictConfig) -> str | None:
-    """The variant config this Hydra job chose, where it belongs to another dataset than the job's: -m dataset=a,b
-    'variant=glob(*)' crosses every dataset with every variant, and a command-line dataset wins over the variant's."""
+def crossed_variant(cfg: DictConfig) -> bool:
+    """Whether this Hydra job's variant config belongs to another dataset than the job's (and say so): -m
+    dataset=a,b 'variant=glob(*)' crosses every dataset with every variant, and a command-line dataset wins."""
     from hydra.core.hydra_config import HydraConfig
 
     if not HydraConfig.initialized():
-        return None
+        return False
     variant = HydraConfig.get().runtime.choices.get("variant")
     if variant in (None, "null") or variant.startswith(f"{cfg.dataset.name}_"):
-        return None
-    return variant
+        return False
+    log.info("variant %s is not a %s variant: skipped", variant, cfg.dataset.name)
+    return True
 
 
 def generate(cfg: DictConfig) -> Path:
@@ -54,10 +55,6 @@ def generate(cfg: DictConfig) -> Path:
     from contactbench.generation.generator import generate_dataset
 
     path = Path(cfg.dataset.path)
-    crossed = _crossed_variant(cfg)
-    if crossed is not None:
-        log.info("variant %s is not a %s variant: skipped", crossed, cfg.dataset.name)
-        return path
     if cfg.dataset.scene is None:
         log.info("%s is a recorded dataset (%s): nothing to generate", cfg.dataset.name, path)
         return path

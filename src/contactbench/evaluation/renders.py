@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.colors import to_rgb
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
@@ -19,6 +20,7 @@ from omegaconf import OmegaConf
 
 from contactbench import restore
 from contactbench.evaluation.figures import TRUTH_COLOUR, model_colour, new_figure, observed_plainly, save_figure
+from contactbench.ground import Ground
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import make_context
@@ -36,6 +38,7 @@ class Rollouts:
     meshes: list[Mesh]
     dt: float  # s per frame
     floor_z: float
+    ground: Ground  # the floor and any terrain on it
 
 
 def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
@@ -53,8 +56,8 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
         truth, lengths = truth_split.poses, truth_split.lengths
         label = f"{cfg.dataset.name} {cfg.dataset.variant}"
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
-        dt, floor_z = dataset.dt, dataset.floor_z
-    return Rollouts(label, truth, lengths, predicted, meshes, dt, floor_z)
+        dt, floor_z, ground = dataset.dt, dataset.floor_z, Ground.of(dataset)
+    return Rollouts(label, truth, lengths, predicted, meshes, dt, floor_z, ground)
 
 
 LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
@@ -112,6 +115,11 @@ def _frame_axes(axis, rollouts: Rollouts, n: int) -> None:
         axis.plot([x, x], [low[1], high[1]], [floor, floor], color="0.85", linewidth=0.5)
     for y in np.arange(np.ceil(low[1] / 0.05) * 0.05, high[1], 0.05):
         axis.plot([low[0], high[0]], [y, y], [floor, floor], color="0.85", linewidth=0.5)
+    if not rollouts.ground.flat:  # the terrain's top surface over the panel, light grey
+        x, y = np.meshgrid(np.linspace(low[0], high[0], 40), np.linspace(low[1], high[1], 40))
+        top = rollouts.ground.height(torch.from_numpy(np.stack([x, y], axis=-1))).numpy()
+        top[top <= floor + 1e-9] = np.nan
+        axis.plot_surface(x, y, top, color="0.8", alpha=0.6, linewidth=0, antialiased=False, shade=True)
     start = low + 0.03
     axis.plot([start[0], start[0] + 0.1], [start[1], start[1]], [floor, floor], color="k", linewidth=2)
     axis.text(start[0], start[1] + 0.02, floor, "10 cm", fontsize=7)
@@ -179,6 +187,9 @@ RENDERED = (
     ("frictioncubes", "friction=0.5"),
     ("multicubes", "bodies=3"),
     ("polyhedra", "faces=12"),
+    ("nonconvex", "shape=ring"),
+    ("terrain", "ground=ramp,faces=6"),
+    ("articulated", "joint_damping=0.005"),
     ("contactnets_cube", None),
 )
 

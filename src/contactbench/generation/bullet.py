@@ -312,24 +312,6 @@ def convex_compound(client: int, pieces: Sequence[Mesh]) -> int:
         return pybullet.createCollisionShape(pybullet.GEOM_MESH, fileName=str(path), physicsClientId=client)
 
 
-def heightfield_mesh(static: Static) -> Mesh:
-    """A height field's surface as triangles (open: a static concave mesh in PyBullet), split as HeightField says."""
-    field = static.heightfield
-    xs, ys = field.grid()
-    x, y = np.meshgrid(xs, ys)
-    vertices = np.stack([x, y, field.heights], axis=-1).reshape(-1, 3)
-    rows, columns = field.heights.shape
-    corner = (np.arange(rows - 1)[:, None] * columns + np.arange(columns - 1)[None, :]).ravel()
-    # (i, j) -> (i+1, j) -> (i+1, j+1) and (i, j) -> (i+1, j+1) -> (i, j+1): counter-clockwise seen from above.
-    faces = np.concatenate(
-        [
-            np.stack([corner, corner + 1, corner + columns + 1], axis=1),
-            np.stack([corner, corner + columns + 1, corner + columns], axis=1),
-        ]
-    )
-    return Mesh(vertices, faces)
-
-
 def add_static(
     client: int, static: Sequence[tuple[Static, Mesh | None]], friction: float, restitution: float
 ) -> tuple[int, ...]:
@@ -338,7 +320,7 @@ def add_static(
     bodies = []
     for entry, mesh in static:
         if entry.heightfield is not None:
-            surface = heightfield_mesh(entry)
+            surface = entry.heightfield.surface()
             shape = pybullet.createCollisionShape(
                 pybullet.GEOM_MESH,
                 vertices=surface.vertices.tolist(),
