@@ -6,7 +6,8 @@ Conventions
   substeps), no sub-stepping, restitution at any impact speed (threshold 0), deterministic pair order, and the
   bodies without PyBullet's default air drag and 1 mm collision margin (`BODY_DYNAMICS_OVERRIDES`). PyBullet combines
   two materials by multiplying their friction and their restitution; the floor carries 1 for both, so a body's own
-  coefficients are the pair's. Bodies collide as their meshes' convex hulls, with one another and the floor.
+  coefficients are the pair's. Bodies collide as their convex pieces (their meshes' hulls where they have none), with
+  one another, the floor and the terrain (recordings version 2; the floor's material). Joints are not built here.
 * PyBullet places and reports a body by its inertial frame (centre of mass, principal axes); recordings poses are the
   mesh frame's. A world converts at this boundary (`_to_inertial`, `_to_mesh`).
 
@@ -29,9 +30,11 @@ import numpy as np
 import pybullet
 
 from contactbench import rotations
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.generation.bullet import (
     BODY_DYNAMICS_OVERRIDES,
+    add_static,
+    convex_compound,
     engine_states,
     forget_contacts,
     parking_spot,
@@ -40,7 +43,7 @@ from contactbench.generation.bullet import (
 from contactbench.generation.scenes import BulletSettings
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
-from contactbench.sim.engines import Dimension, Engine, require_flat
+from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
 from contactbench.values import freeze_numbers
 
@@ -151,10 +154,8 @@ class BulletWorld(World):
         shapes: dict[str, int] = {}
         bodies = []
         for k, body in enumerate(scene.bodies):
-            if body.mesh not in shapes:  # without indices PyBullet wraps the vertices in their convex hull
-                shapes[body.mesh] = pybullet.createCollisionShape(
-                    pybullet.GEOM_MESH, vertices=scene.body_mesh(k).vertices.tolist(), physicsClientId=client
-                )
+            if body.mesh not in shapes:  # a body's convex pieces (its hull, where it has none), in its mesh frame
+                shapes[body.mesh] = convex_compound(client, scene.body_pieces(k))
             handle = pybullet.createMultiBody(
                 body.mass,
                 shapes[body.mesh],
@@ -172,6 +173,13 @@ class BulletWorld(World):
                 **BODY_DYNAMICS_OVERRIDES,
             )
             bodies.append(handle)
+        # terrain after the bodies, as the generator builds it: PyBullet's contact order follows creation order
+        add_static(
+            client,
+            [(entry, scene.meshes.get(entry.mesh)) for entry in scene.static],
+            TABLE_2A.floor_friction,
+            TABLE_2A.floor_restitution,
+        )
         return tuple(bodies)
 
     def _apply(self, parameters: BulletParameters) -> None:
@@ -265,7 +273,11 @@ class BulletEngine(Engine):
     name = "bullet"
 
     def check_scene(self, scene: Scene) -> None:
-        require_flat(scene, "PyBullet")
+        if scene.joints:
+            raise NotApplicable(
+                f"the PyBullet engine here simulates free bodies (convex pieces, on any terrain); {scene.name} has "
+                "joints (model=sysid and mujoco_default simulate those)"
+            )
 
     def default_parameters(self, n_bodies: int) -> BulletParameters:
         """PyBullet's own body defaults: friction 0.5, restitution 0, no spinning or rolling friction, rigid contact."""
@@ -333,9 +345,10 @@ def _roll_pitch_yaw(q: np.ndarray) -> np.ndarray:
 
 def scene_files(scene: Scene, parameters: BulletParameters) -> dict[str, str]:
     """One URDF per body (body_<k>.urdf: pybullet.loadURDF with flags=URDF_USE_INERTIA_FROM_FILE, else PyBullet
-    computes an inertia of its own from the collision shape) with its inertial frame, its convex mesh
-    (meshes/body_<k>.obj) and its contact parameters in PyBullet's <contact> extension; the world settings (step,
-    gravity, the floor and its material) are stated in a comment, as the generator sets them."""
+    computes an inertia of its own from the collision shape) with its inertial frame, its convex pieces
+    (meshes/body_<k>_<i>.obj, one <collision> each; a convex body has one) and its contact parameters in PyBullet's
+    <contact> extension; terrain as static_<i>.urdf (mass 0; a height field as its triangle surface); the world
+    settings (step, gravity, the floor and its material) are stated in a comment, as the generator sets them."""
     coms, axes, moments = inertial_frames(scene)
     world = (
         f"PyBullet world: fixedTimeStep {scene.dt!r} s, gravity {_numbers(scene.gravity)}, a plane at z = "
@@ -364,7 +377,10 @@ def scene_files(scene: Scene, parameters: BulletParameters) -> dict[str, str]:
                 f'<inertial><origin xyz="{_numbers(coms[k])}" rpy="{_numbers(_roll_pitch_yaw(axes[k]))}"/>'
                 f'<mass value="{body.mass!r}"/><inertia ixx="{float(moments[k][0])!r}" ixy="0" ixz="0" '
                 f'iyy="{float(moments[k][1])!r}" iyz="0" izz="{float(moments[k][2])!r}"/></inertial>',
-                f'<collision><geometry><mesh filename="meshes/body_{k}.obj"/></geometry></collision>',
+                *(
+                    f'<collision><geometry><mesh filename="meshes/body_{k}_{i}.obj"/></geometry></collision>'
+                    for i in range(len(scene.body_pieces(k)))
+                ),
                 f'<visual><geometry><mesh filename="meshes/body_{k}.obj"/></geometry></visual>',
                 "</link>",
                 "</robot>",
@@ -372,4 +388,25 @@ def scene_files(scene: Scene, parameters: BulletParameters) -> dict[str, str]:
         )
     for k in range(scene.n_bodies):
         files[f"meshes/body_{k}.obj"] = obj_text(scene.body_mesh(k))
+        for i, piece in enumerate(scene.body_pieces(k)):
+            files[f"meshes/body_{k}_{i}.obj"] = obj_text(piece)
+    for i, entry in enumerate(scene.static):
+        surface = entry.heightfield.surface() if entry.heightfield is not None else scene.meshes[entry.mesh]
+        files[f"meshes/static_{i}.obj"] = obj_text(surface)
+        files[f"static_{i}.urdf"] = "\n".join(
+            [
+                "<?xml version='1.0'?>",
+                f"<!-- terrain, fixed (useFixedBase=True), the floor's material; {world} -->",
+                f"<robot name={quoteattr(entry.name)}>",
+                f"<link name={quoteattr(entry.name)}>",
+                f'<contact><lateral_friction value="{TABLE_2A.floor_friction!r}"/>'
+                f'<restitution value="{TABLE_2A.floor_restitution!r}"/></contact>',
+                '<inertial><mass value="0"/><inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial>',
+                f'<collision><origin xyz="{_numbers(entry.pose[:3])}" '
+                f'rpy="{_numbers(_roll_pitch_yaw(entry.pose[3:]))}"/>'
+                f'<geometry><mesh filename="meshes/static_{i}.obj"/></geometry></collision>',
+                "</link>",
+                "</robot>",
+            ]
+        )
     return files
