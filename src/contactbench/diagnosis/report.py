@@ -478,7 +478,8 @@ def _candidates(candidates: list[dict], margin: float, path: Path) -> Path | Non
     axis.barh(
         labels,
         values,
-        xerr=[values - low, high - values],
+        # a bootstrap interval of one or two held-out tosses can miss its own estimate by a rounding error
+        xerr=[np.maximum(values - low, 0.0), np.maximum(high - values, 0.0)],
         capsize=3,
         color=["tab:green" if c["passes"] else "tab:gray" for c in scored],
     )
