@@ -396,3 +396,13 @@ def test_each_of_two_named_effects_must_improve_the_held_out_rollouts_given_the_
     assert kept.names == ("wind", "inertia_mismatch") and all(r["kept"] for r in records)
     kept, _, _ = scores(without_inertia=1.0, without_wind=1.0)  # neither alone: they stand or fall together
     assert kept.names == ("wind", "inertia_mismatch")
+
+
+def test_the_candidates_figure_takes_an_interval_that_misses_its_estimate_by_rounding(tmp_path):
+    """One held-out toss: its bootstrap interval is a point, which can lie 1e-17 beside the estimate."""
+    from contactbench.diagnosis.report import _candidates
+
+    candidate = {"name": "wind", "round": 1, "val_improvement": -0.1, "passes": False}
+    estimate = -0.1 + 1e-17
+    scored = [{**candidate, "closes_of_base_loss": estimate, "closes_ci95": [-0.1, -0.1]}]
+    assert _candidates(scored, 0.05, tmp_path / "candidates.png").is_file()
