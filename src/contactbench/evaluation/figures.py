@@ -21,6 +21,13 @@ SWEEPS = {
     "polyhedra": ("faces", "Fig. 3: effect of geometry (POLYHEDRA)"),
     "multicubes": ("bodies", "Fig. 5: effect of the number of bodies (MULTICUBES)"),
 }
+# Table 3's dimensions: the paper's sweeps, and the future-work families' (named, not numbered, variants: no figure)
+DIMENSIONS = {
+    **{dataset: parameter for dataset, (parameter, _) in SWEEPS.items()},
+    "nonconvex": "shape",
+    "terrain": "ground and solid",
+    "articulated": "joint_damping",
+}
 PANELS = [
     ("pos_err", "position error (widths)"),
     ("rot_err_rad", "rotation error (rad)"),
@@ -306,8 +313,12 @@ def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
     range over seeds among those variants (none with one seed), 'No' otherwise, 'N/A' without at least two
     variants."""
     table: dict[str, dict[str, str]] = {}
-    for dataset, (parameter, _) in SWEEPS.items():
-        for model, cells in _by_model(runs, dataset).items():
+    for dataset, parameter in DIMENSIONS.items():
+        chosen = [run for run in runs if run.summary["dataset"] == dataset]
+        by_model: dict[str, list[list[Run]]] = {}
+        for cell in seed_cells(chosen, lambda run: (run.summary["model"], run.summary["variant"])):
+            by_model.setdefault(cell[0].summary["model"], []).append(cell)
+        for model, cells in by_model.items():
             spreads = [Spread.of([run.summary["pos_err"] for run in cell]) for cell in cells]
             errors = np.array([spread.mean for spread in spreads])
             if len(errors) < 2 or not np.all(np.isfinite(errors)):

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from contactbench import atomic
 from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError
-from contactbench.evaluation.figures import IMPORTANCE_THRESHOLD, SWEEPS, Spread, draw_all, observed_plainly
+from contactbench.evaluation.figures import DIMENSIONS, IMPORTANCE_THRESHOLD, Spread, draw_all, observed_plainly
 from contactbench.evaluation.renders import render_report
 from contactbench.folders import OUTCOME
 
@@ -255,9 +255,9 @@ def importance_sentence(seeded: bool) -> str:
 
 def importance_markdown(table: dict[str, dict[str, str]]) -> str:
     """Table 3 over the dimensions that have at least two variants in these runs; says what the others need."""
-    dimensions = [parameter for parameter, _ in SWEEPS.values()]
+    dimensions = list(DIMENSIONS.values())
     measured = [d for d in dimensions if any(verdicts.get(d, "N/A") != "N/A" for verdicts in table.values())]
-    missing = [f"{dataset} ({parameter})" for dataset, (parameter, _) in SWEEPS.items() if parameter not in measured]
+    missing = [f"{dataset} ({parameter})" for dataset, parameter in DIMENSIONS.items() if parameter not in measured]
     note = (
         f"Not measured here (needs test runs on at least two variants of): {', '.join(missing)}.\n" if missing else ""
     )
