@@ -8,9 +8,14 @@ Conventions
   qpos = (x, y, z, qw, qx, qy, qz) of the body is exactly a recordings pose.
 * MuJoCo free-joint qvel = (linear velocity of the body-frame origin, world frame; angular velocity, BODY frame).
   Recordings velocities are both world-frame; `pack_state` / `unpack_state` convert at this boundary.
-* Collision uses each mesh's convex hull (MuJoCo collides mesh geoms as convex hulls).
+* Collision uses each mesh's convex hull (MuJoCo collides mesh geoms as convex hulls); a body with convex pieces
+  (recordings version 2) has one mesh geom per piece, its inertia still the true mesh's.
+* Terrain (version 2): static mesh geoms and height fields in the world body, in contact with every body through
+  pairs carrying the floor's parameters. A hinge's child is nested in its parent on a hinge joint (placed as at angle
+  0, damping as recorded), so its state is the joint's angle and rate (`StateLayout` converts); MuJoCo leaves a body
+  and its parent out of contact, so an explicit pair puts the two links back in.
 * Integrator: MuJoCo's Euler, which is semi-implicit (v += h a, then x += h v_new), the convention the recorded
-  velocities follow (x_t - x_{t-1} = dt v_t); no joint damping, timestep = dt / substeps.
+  velocities follow (x_t - x_{t-1} = dt v_t); no joint damping on free joints, timestep = dt / substeps.
 
 How contact parameters reach contacts
 -------------------------------------
