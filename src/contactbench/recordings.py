@@ -286,10 +286,6 @@ class Scene:
         """Free convex-collided bodies on the flat floor alone: the scenes every model of the paper handles."""
         return not self.static and not self.joints and all(self.is_convex(k) for k in range(self.n_bodies))
 
-    def mesh_paths(self) -> list[str]:
-        """Every OBJ file the scene names, once each, in meta.json order."""
-        return mesh_paths(self.meta)
-
     def widths(self) -> np.ndarray:
         """Per-body width w_k: the largest extent of the mesh's axis-aligned bounding box (m)."""
         return np.array([self.body_mesh(k).width for k in range(self.n_bodies)])

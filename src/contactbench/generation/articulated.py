@@ -13,7 +13,7 @@ import numpy as np
 import pybullet
 
 from contactbench import rotations
-from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, engine_states, forget_contacts
+from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, engine_states, forget_contacts, table_2a_world
 from contactbench.generation.scenes import BulletSettings, SceneSpec
 from contactbench.generation.solids import WIDTH, convex_mesh
 from contactbench.kinematics import hinge_child, hinge_coordinates, world_vertices
@@ -90,14 +90,7 @@ class ElbowScene:
 
     def _build(self, spec: SceneSpec, settings: BulletSettings) -> None:
         client, elbow = self.client, self.elbow
-        pybullet.setPhysicsEngineParameter(
-            fixedTimeStep=settings.dt,
-            numSubSteps=0,
-            restitutionVelocityThreshold=settings.restitution_velocity_threshold,
-            deterministicOverlappingPairs=1,
-            physicsClientId=client,
-        )
-        pybullet.setGravity(*settings.gravity, physicsClientId=client)
+        table_2a_world(client, settings, settings.gravity)
         floor = pybullet.createMultiBody(
             0.0, pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client), physicsClientId=client
         )

@@ -81,16 +81,7 @@ class BulletScene:
 
     def _build(self, pieces: list[Mesh]) -> tuple[int, tuple[int, ...]]:
         settings, spec, client = self.settings, self.spec, self.client
-        pybullet.setPhysicsEngineParameter(
-            fixedTimeStep=settings.dt,
-            numSubSteps=0,
-            restitutionVelocityThreshold=settings.restitution_velocity_threshold,
-            deterministicOverlappingPairs=1,
-            physicsClientId=client,
-        )
-        pybullet.setGravity(
-            *(np.asarray(settings.gravity) * self.effects.gravity_scale).tolist(), physicsClientId=client
-        )
+        table_2a_world(client, settings, np.asarray(settings.gravity) * self.effects.gravity_scale)
         floor_shape = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
         floor = pybullet.createMultiBody(
             0.0,
@@ -293,6 +284,19 @@ class BulletScene:
                 result[f"contact_{part}_force"] += force_sum[:, :count]
                 result[f"contact_{part}_torque"] += torque_sum[:, :count]
         return result
+
+
+def table_2a_world(client: int, settings: BulletSettings, gravity: np.ndarray) -> None:
+    """Table 2a's engine settings: one engine step per frame, restitution at any impact speed, deterministic pair
+    order; and gravity."""
+    pybullet.setPhysicsEngineParameter(
+        fixedTimeStep=settings.dt,
+        numSubSteps=0,
+        restitutionVelocityThreshold=settings.restitution_velocity_threshold,
+        deterministicOverlappingPairs=1,
+        physicsClientId=client,
+    )
+    pybullet.setGravity(*np.asarray(gravity, dtype=float).tolist(), physicsClientId=client)
 
 
 def convex_compound(client: int, pieces: Sequence[Mesh]) -> int:
