@@ -233,11 +233,14 @@ class Scene:
     def version(self) -> int:
         return int(self.meta["version"])
 
-    def body_pieces(self, k: int) -> list[Mesh]:
-        """The convex solids engines collide for body k: its pieces (version 2) or its mesh."""
+    def piece_paths(self, k: int) -> list[str]:
+        """The OBJ paths of the convex solids engines collide for body k: its pieces (version 2) or its mesh."""
         entry = self.meta["bodies"][k]
-        paths = entry.get("pieces", [entry["mesh"]]) if self.version >= SCENE_VERSION else [entry["mesh"]]
-        return [self.meshes[path] for path in paths]
+        return list(entry["pieces"]) if not self.is_convex(k) else [entry["mesh"]]
+
+    def body_pieces(self, k: int) -> list[Mesh]:
+        """The convex solids engines collide for body k (piece_paths)."""
+        return [self.meshes[path] for path in self.piece_paths(k)]
 
     def is_convex(self, k: int) -> bool:
         """Whether body k is collided as its own mesh (no pieces)."""

@@ -157,7 +157,7 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
         )
     if substeps < 1:
         raise ContactbenchError(f"substeps must be a positive integer, got {substeps}")
-    pieces = [_piece_paths(dataset, k) for k in range(dataset.n_bodies)]
+    pieces = [dataset.piece_paths(k) for k in range(dataset.n_bodies)]
     static = dataset.static
     used = [path for paths in pieces for path in paths] + [entry.mesh for entry in static if entry.mesh is not None]
     mesh_names = {path: f"mesh{i}" for i, path in enumerate(dict.fromkeys(used))}
@@ -253,11 +253,6 @@ def _body_tree(dataset: Scene, contents: dict[int, str]) -> list[str]:
         return f"{head}{contents[k]}{children}</body>"
 
     return [body(k) for k in range(dataset.n_bodies) if k not in child_joint]
-
-
-def _piece_paths(dataset: Scene, k: int) -> list[str]:
-    entry = dataset.meta["bodies"][k]
-    return [entry["mesh"]] if dataset.is_convex(k) else list(entry["pieces"])
 
 
 def _hfield_asset(i: int, entry: Static) -> str:
