@@ -23,6 +23,7 @@ from contactbench.ground import Ground, signed_distance
 from contactbench.kinematics import hinge_child, world_vertices
 from contactbench.meshes import convexity_problem
 from contactbench.models.gnn.graph import MeshScene, collision_radius
+from contactbench.models.gnn.module import inertia_per_mass
 from contactbench.models.gnn.rigid import RigidLearnedSimulator
 from contactbench.models.hybrid.dynamics import single_body_scene
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
@@ -189,12 +190,13 @@ def test_the_hinge_keeps_its_axis_and_anchor_and_free_flight_follows_g(elbow):
     split = elbow.split("train")
     gaps, angles = metrics.joint_errors(split.poses, elbow.joints)
     assert gaps.max() < 1e-6 and angles.max() < 1e-6
-    # the pair's centre of mass in its first frames (in the air) falls at g (to 2e-4 g: Bullet's multibody
-    # integrator does not conserve momentum exactly while the links spin about each other)
+    # the pair's centre of mass in its first frames (in the air) falls at g (to 1% of g: Bullet's reduced-coordinate
+    # integrator does not conserve momentum exactly while the links spin about each other, 5e-4 g undamped, and
+    # more while the damping changes their relative spin quickly)
     masses = np.array([body.mass for body in elbow.bodies])
     centre = np.einsum("k,ntkd->ntd", masses, split.poses[..., :3]) / masses.sum()
     acceleration = np.diff(centre[:, :4], n=2, axis=1) / elbow.dt**2
-    np.testing.assert_allclose(acceleration, np.broadcast_to(elbow.gravity, acceleration.shape), atol=5e-3)
+    np.testing.assert_allclose(acceleration, np.broadcast_to(elbow.gravity, acceleration.shape), atol=0.1)
 
 
 def test_generation_is_deterministic(tmp_path):
@@ -285,6 +287,54 @@ def test_the_gnn_closes_a_hinge_exactly_and_reads_the_terrain(elbow, ramp):
     on_ramp = torch.tensor([[[0.0, 0.0, 0.18 + 0.02]]], dtype=torch.float64)
     assert terrain.clearance(on_ramp).item() == pytest.approx((0.2 - np.tan(np.radians(10))) * np.cos(np.radians(10)))
     assert terrain.ground_normal_features == 3
+
+
+def test_the_rigid_gnn_swings_the_elbow_as_pybullet_does_with_its_joint_reaction_and_damping(elbow):
+    """With the network silent (no contact), the rigid GNN's integrator is Newton-Euler with the hinge's reaction and
+    the recorded damping: it follows the generator's multibody in the air to a few micrometres, keeps the hinge
+    before any projection, and the pair's centre of mass falls at g. Leaving the damping out misses by far more."""
+    scene = MeshScene.of(elbow)
+    simulator = RigidLearnedSimulator(
+        scene,
+        elbow.dt,
+        elbow.floor_z,
+        elbow.gravity,
+        collision_radius(scene.widths),
+        0.25 * scene.widths.max(),
+        joints=tuple(elbow.joints),
+        masses=np.array([body.mass for body in elbow.bodies]),
+        solid_inertia=inertia_per_mass(elbow, scene),
+        latent_size=8,
+        message_passing_steps=1,
+    )
+    for parameter in simulator.network.parameters():
+        torch.nn.init.zeros_(parameter)
+    poses = torch.as_tensor(np.concatenate([elbow.split(name).poses for name in ("train", "val", "test")]))
+    history, steps = simulator.velocity_history + 1, 4
+    meshes = [elbow.body_mesh(k) for k in range(2)]
+    clearance = metrics.ground_clearance(poses[:, : history + steps].numpy(), meshes, Ground.of(elbow))
+    in_the_air = clearance.min(axis=(1, 2)) > 0.002
+    assert in_the_air.sum() >= 4
+    poses = poses[in_the_air]
+    frames = poses[:, :history]
+    for _ in range(steps):  # integrated without keep_joints: the hinge is the reaction's alone
+        window = frames[:, -history:]
+        frames = torch.cat([frames, simulator.integrate(window, *simulator.accelerations(window))[:, None]], dim=1)
+    predicted, recorded = frames[:, history:].detach().numpy(), poses[:, history : history + steps].numpy()
+    error = np.abs(predicted[..., :3] - recorded[..., :3]).max()
+    assert error < 5e-5
+    gaps, angles = metrics.joint_errors(predicted, elbow.joints)
+    assert gaps.max() < 1e-5 and angles.max() < 1e-9
+    masses = np.array([body.mass for body in elbow.bodies])
+    centre = np.einsum("k,ntkd->ntd", masses, frames[:, history - 2 :, :, :3].detach().numpy()) / masses.sum()
+    falling = np.diff(centre, n=2, axis=1) / elbow.dt**2
+    np.testing.assert_allclose(falling, np.broadcast_to(elbow.gravity, falling.shape), atol=1e-8)
+    simulator.joints = (dataclasses.replace(elbow.joints[0], damping=0.0),)
+    window = poses[:, :history]
+    undamped = simulator.integrate(window, *simulator.accelerations(window)).detach().numpy()
+    assert (
+        np.abs(undamped[..., :3] - recorded[:, 0, :, :3]).max() > 10 * np.abs(predicted - recorded)[:, 0, :, :3].max()
+    )
 
 
 def test_models_that_know_only_the_flat_floor_refuse_the_new_scenes_in_one_line(ramp, elbow):

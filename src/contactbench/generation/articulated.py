@@ -138,7 +138,6 @@ class ElbowScene:
                 localInertiaDiagonal=np.diag(inertia).tolist(),
                 lateralFriction=spec.friction,
                 restitution=spec.restitution,
-                jointDamping=elbow.damping if link == 0 else 0.0,
                 physicsClientId=client,
                 **BODY_DYNAMICS_OVERRIDES,
             )
@@ -166,6 +165,11 @@ class ElbowScene:
         readings = []
         for t in range(frames):
             if t:
+                if self.elbow.damping:  # changeDynamics' jointDamping does nothing to this multibody: applied here
+                    rate = pybullet.getJointState(body, 0, physicsClientId=client)[1]
+                    pybullet.setJointMotorControl2(
+                        body, 0, pybullet.TORQUE_CONTROL, force=-self.elbow.damping * rate, physicsClientId=client
+                    )
                 pybullet.stepSimulation(physicsClientId=client)
             readings.append(pybullet.getBasePositionAndOrientation(body, client))
             readings.append(pybullet.getBaseVelocity(body, client))

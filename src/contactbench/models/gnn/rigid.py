@@ -29,6 +29,11 @@ rigidity holds at every step by construction, as Allen et al. (2022) obtain with
 - Bodies apart (separate_bodies): after every rollout step, overlapping bodies are pushed apart by their exact
   penetration depth (separating-axis test), a position projection as in position-based dynamics. The one-step loss
   cannot teach non-penetration of stacked bodies well enough: without it three cubes end 12 mm inside each other.
+- Joints (the articulated elbow): the network's outputs are contact alone; each hinge's reaction and its recorded
+  damping enter the rigid accelerations by Newton-Euler (`jointed`: the least-kinetic-energy impulse that keeps the
+  anchors together and the axes turning as one over the step), so a link swings on its neighbour as the multibody
+  does (in the air, 1e-6 m of PyBullet's elbow a step), in training as in rollouts. keep_joints closes what the
+  linearised step leaves; jointed links are not pushed apart by translation (it would only fight the hinge).
 - Training noise: the paper's random walk on the input positions, and its rotational twin on orientations with a
   last-step scale of noise_std / half-width (the same displacement at a corner); the target frame is shifted by the
   last input frame's noise, so the model learns to cancel velocity noise.
@@ -68,6 +73,21 @@ def separating_axes(scene: MeshScene) -> tuple[torch.Tensor, torch.Tensor]:
     return padded_rows([g.face_normals for g in geometries]), padded_rows([g.edge_directions for g in geometries])
 
 
+def tangents(axis: np.ndarray) -> np.ndarray:
+    """Two unit vectors [2, 3] orthogonal to a unit axis and to each other."""
+    helper = np.eye(3)[np.argmin(np.abs(axis))]
+    first = np.cross(axis, helper)
+    first /= np.linalg.norm(first)
+    return np.stack([first, np.cross(axis, first)])
+
+
+def skew(vectors: torch.Tensor) -> torch.Tensor:
+    """The cross-product matrices [..., 3, 3] of vectors [..., 3]: skew(r) w = r × w."""
+    x, y, z = vectors.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*vectors.shape[:-1], 3, 3)
+
+
 def padded_rows(rows: list) -> torch.Tensor:
     """Arrays (or slices, as their indices) of different lengths stacked, each padded to the longest by repeating
     its first entry: a repeated axis or vertex changes no separating-axis test."""
@@ -100,7 +120,6 @@ class RigidLearnedSimulator(LearnedSimulator):
         self.contact_distance = contact_distance
         self.joints = tuple(joints)  # parents first (Scene.joints)
         self.floor_gate = floor_gate
-        self.separate_bodies = separate_bodies
         super().__init__(scene, dt, floor_z, radius, **options)
         node_body = torch.as_tensor(scene.node_body)
         rest = torch.as_tensor(scene.rest_vertices, dtype=torch.float64)
@@ -126,12 +145,29 @@ class RigidLearnedSimulator(LearnedSimulator):
         self.register_buffer("free_flight_acceleration", torch.as_tensor(np.asarray(gravity, dtype=np.float64)))
         self.register_buffer("faces", torch.as_tensor(scene.faces), persistent=False)
         self.register_buffer("face_body", torch.as_tensor(scene.node_body[scene.faces[:, 0]]), persistent=False)
-        if separate_bodies and scene.n_bodies > 1:
+        self.register_buffer("identity", torch.eye(3, dtype=torch.float64), persistent=False)
+        self.register_buffer(
+            "inverse_inertia_per_mass", self.inverse_geometric_inertia * counts[:, None, None], persistent=False
+        )
+        axes = np.array([joint.axis for joint in self.joints], dtype=np.float64).reshape(-1, 3)
+        self.register_buffer("joint_axes", torch.as_tensor(axes), persistent=False)
+        self.register_buffer(
+            "joint_tangents", torch.as_tensor(np.array([tangents(a) for a in axes]).reshape(-1, 2, 3)), persistent=False
+        )
+        anchors = [[joint.parent_anchor, joint.child_anchor] for joint in self.joints]
+        self.register_buffer(
+            "joint_anchors", torch.as_tensor(np.array(anchors, dtype=np.float64).reshape(-1, 2, 3)), persistent=False
+        )
+        # a hinge holds its two links together: pushing them apart by translation would only fight keep_joints, so
+        # the network (collision edges) and the joint's reaction keep jointed links apart
+        jointed = {frozenset((joint.parent, joint.child)) for joint in self.joints}
+        pairs = [pair for pair in itertools.combinations(range(scene.n_bodies), 2) if frozenset(pair) not in jointed]
+        self.separates = separate_bodies and bool(pairs)
+        if self.separates:
             normals, edges = separating_axes(scene)
             self.register_buffer("face_normals", normals, persistent=False)
             self.register_buffer("edge_directions", edges, persistent=False)
-            pairs = torch.as_tensor(list(itertools.combinations(range(scene.n_bodies), 2))).T
-            self.register_buffer("body_pairs", pairs, persistent=False)  # [2, P] (a, b), a < b
+            self.register_buffer("body_pairs", torch.as_tensor(pairs).T, persistent=False)  # [2, P] (a, b), a < b
             self.register_buffer("body_vertices", padded_rows(scene.body_slices()), persistent=False)
 
     def fit_normalisation(self, split: Split) -> None:
@@ -261,7 +297,8 @@ class RigidLearnedSimulator(LearnedSimulator):
         gate = near | touched.reshape(near.shape)
         contact = output.double() * self.acceleration_std.double() * gate[..., None]
         linear, angular = self.rigid_fit(contact, current, poses[:, -1])
-        return linear + self.free_flight_acceleration, angular
+        linear = linear + self.free_flight_acceleration
+        return self.jointed(poses, linear, angular) if self.joints else (linear, angular)
 
     def rigid_fit(
         self, vertex_accelerations: torch.Tensor, vertices: torch.Tensor, poses: torch.Tensor
@@ -296,11 +333,93 @@ class RigidLearnedSimulator(LearnedSimulator):
         """The pose frame [B, K, 7] after poses [B, H + 1, K, 7], with the predicted accelerations (bodies pushed apart,
         when the simulator separates them)."""
         following = self.integrate(history, *self.accelerations(history))
-        if self.separate_bodies and self.scene.n_bodies > 1:
+        if self.separates:
             following = self.separate(following)
         return self.keep_joints(following) if self.joints else following
 
     # ------------------------------------------------------------ joints kept
+
+    def jointed(
+        self, poses: torch.Tensor, linear: torch.Tensor, angular: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The accelerations [B, K, 3] of the jointed bodies under free-body accelerations (contact and gravity) and
+        each hinge's recorded damping, its reaction included: the impulse of least kinetic energy (Gauss) that keeps
+        every hinge's anchors where they are relative to each other over the step and its two axes turning together.
+
+        The network then learns contact alone; the joint's reaction, which swings a link on its neighbour, is
+        Newton-Euler's. A step's anchor motion is taken exactly (exp(ω dt) r), linearised once about the unconstrained
+        step (a Newton step, exact to O(dt²) of the correction), so a spinning elbow keeps its hinge without the
+        centripetal error of a velocity-level constraint; what remains, keep_joints closes in rollouts. The gap the
+        inputs carry is kept, not closed: training noise moves the target frame with the last input, gap included.
+        """
+        current = poses[:, -1]
+        velocity, spin = self.velocities(poses[:, -2], current)
+        orientations = current[..., 3:]
+        # world inverse inertia per body [B, K, 3, 3]: R (m I_per_mass)⁻¹ Rᵀ
+        rotation = quaternions.rotate(orientations[..., None, :], self.identity)  # [B, K, 3 (columns), 3]
+        rotation = rotation.transpose(-1, -2)
+        inverse_inertia = (
+            rotation @ self.inverse_inertia_per_mass @ rotation.transpose(-1, -2) / self.body_masses[:, None, None]
+        )
+        following_velocity = velocity + linear * self.dt
+        following_spin = spin + angular * self.dt + self.damping_impulses(orientations, spin, inverse_inertia)
+        rows, residuals = self.joint_rows(current, following_velocity, following_spin)  # [B, R, K, 6], [B, R]
+        mobility = torch.cat(
+            [rows[..., :3] / self.body_masses[:, None], (inverse_inertia[:, None] @ rows[..., 3:, None])[..., 0]],
+            dim=-1,
+        )
+        impulses = torch.linalg.solve(torch.einsum("brkd,bskd->brs", rows, mobility), -residuals)
+        change = torch.einsum("brkd,br->bkd", mobility, impulses)
+        return (
+            (following_velocity + change[..., :3] - velocity) / self.dt,
+            (following_spin + change[..., 3:] - spin) / self.dt,
+        )
+
+    def damping_impulses(
+        self, orientations: torch.Tensor, spin: torch.Tensor, inverse_inertia: torch.Tensor
+    ) -> torch.Tensor:
+        """The change of spin [B, K, 3] over a step from each hinge's damping torque −c q̇ at the step's start (equal and
+        opposite on its two bodies; explicit, as the generator applies it)."""
+        change = torch.zeros_like(spin)
+        for joint, axis in zip(self.joints, self.joint_axes):
+            if joint.damping == 0:
+                continue
+            axis = quaternions.rotate(orientations[:, joint.parent], axis)
+            rate = ((spin[:, joint.child] - spin[:, joint.parent]) * axis).sum(-1, keepdim=True)
+            torque = -joint.damping * rate * axis * self.dt
+            change[:, joint.child] += (inverse_inertia[:, joint.child] @ torque[..., None])[..., 0]
+            change[:, joint.parent] -= (inverse_inertia[:, joint.parent] @ torque[..., None])[..., 0]
+        return change
+
+    def joint_rows(
+        self, current: torch.Tensor, velocity: torch.Tensor, spin: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every hinge's five constraint rows [B, 5 J, K, 6] on the bodies' (velocity, spin) over the coming step, and
+        their residuals [B, 5 J] at the given ones: three for the anchors' relative displacement over the step
+        (per unit time, exp(ω dt) r exact, its Jacobian at the rotated offsets), two for the relative spin across the
+        axis (the child turns about the axis alone)."""
+        batch = current.shape[0]
+        rows = current.new_zeros(batch, 5 * len(self.joints), self.scene.n_bodies, 6)
+        residuals = []
+        eye = self.identity
+        for j, (joint, tangents) in enumerate(zip(self.joints, self.joint_tangents)):
+            anchor, cross = 5 * j, 5 * j + 3
+            moves = []
+            for body, anchor_offset, sign in (
+                (joint.child, self.joint_anchors[j, 1], 1.0),
+                (joint.parent, self.joint_anchors[j, 0], -1.0),
+            ):
+                offset = quaternions.rotate(current[:, body, 3:], anchor_offset)
+                turned = quaternions.rotate(quaternions.from_rotation_vector(spin[:, body] * self.dt), offset)
+                moves.append(sign * (velocity[:, body] + (turned - offset) / self.dt))
+                rows[:, anchor:cross, body, :3] = sign * eye
+                rows[:, anchor:cross, body, 3:] = -sign * skew(turned)
+            world_tangents = quaternions.rotate(current[:, joint.parent, None, 3:], tangents)  # [B, 2, 3]
+            rows[:, cross : cross + 2, joint.child, 3:] = world_tangents
+            rows[:, cross : cross + 2, joint.parent, 3:] = -world_tangents
+            relative_spin = spin[:, joint.child] - spin[:, joint.parent]
+            residuals += [moves[0] + moves[1], (world_tangents @ relative_spin[..., None])[..., 0]]
+        return rows, torch.cat(residuals, dim=-1)
 
     def keep_joints(self, poses: torch.Tensor) -> torch.Tensor:
         """Poses [B, K, 7] with every hinge closed, parents first: the child turned onto the nearest pure turn about
@@ -308,19 +427,15 @@ class RigidLearnedSimulator(LearnedSimulator):
         (the centre of mass of the pair stays where the network put it). A position projection like `separate`: the
         next step's differenced velocities follow the joint."""
         poses = poses.clone()
-        for joint in self.joints:
+        for joint, axis, (parent_anchor, child_anchor) in zip(self.joints, self.joint_axes, self.joint_anchors):
             parent, child = poses[:, joint.parent], poses[:, joint.child]
-            axis = torch.as_tensor(joint.axis, dtype=poses.dtype, device=poses.device)
             relative = quaternions.multiply(quaternions.conjugate(parent[:, 3:]), child[:, 3:])
             half_angle = torch.atan2(relative[:, 1:] @ axis, relative[:, 0])[:, None]
             turn = torch.cat([torch.cos(half_angle), torch.sin(half_angle) * axis], dim=-1)
             child_orientation = quaternions.multiply(parent[:, 3:], turn)
             anchors = [
-                pose[:, :3] + quaternions.rotate(orientation, torch.as_tensor(anchor, dtype=poses.dtype))
-                for pose, orientation, anchor in (
-                    (parent, parent[:, 3:], joint.parent_anchor),
-                    (child, child_orientation, joint.child_anchor),
-                )
+                parent[:, :3] + quaternions.rotate(parent[:, 3:], parent_anchor),
+                child[:, :3] + quaternions.rotate(child_orientation, child_anchor),
             ]
             gap = anchors[1] - anchors[0]
             masses = self.body_masses[joint.parent], self.body_masses[joint.child]

@@ -37,7 +37,53 @@ class SysIDDataModule(pl.LightningDataModule):
         return DataLoader(range(self.generations), batch_size=None)
 
 
-class SysIDModule(pl.LightningModule):
+class IdentifiedModule(pl.LightningModule):
+    """An identified engine's parameters as a Lightning module: a callback searches, `selected` holds what won on val
+    (a search-space vector), `to_contact_model()` simulates with it. No torch optimiser: a step is the callback's."""
+
+    def __init__(self, dataset: Recordings, engine: str) -> None:
+        super().__init__()
+        if engine not in engines.ENGINE_CLASSES:
+            known = ", ".join(engines.ENGINE_CLASSES)
+            raise ContactbenchError(f"model.module.engine is {engine!r} (expected one of {known})")
+        self.automatic_optimization = False
+        self.dataset = dataset
+        engines.engine(engine).check_scene(dataset)
+        self.space = search_space(engine, dataset.n_bodies)
+        self.register_buffer("selected", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64))
+        self.register_buffer("selected_val_loss", torch.tensor(float("inf"), dtype=torch.float64))
+
+    model_name: str  # what the fitted contact model is called in scores
+
+    def configure_optimizers(self):
+        return None
+
+    def training_step(self, batch, batch_index):
+        return None  # the callback does the work of a step
+
+    def select(self, vector, val_loss: float) -> None:
+        self.selected.copy_(torch.as_tensor(np.asarray(vector, dtype=np.float64)))
+        self.selected_val_loss.fill_(float(val_loss))
+
+    def selected_parameters(self):
+        if not torch.isfinite(self.selected).all():
+            raise RuntimeError("the SysID search has not selected parameters yet (no finished run in this checkpoint)")
+        return self.space.from_vector(self.selected.cpu().numpy())
+
+    def to_contact_model(self) -> EngineContactModel:
+        h = self.hparams
+        if h.engine == "mujoco":
+            return MujocoContactModel(name=self.model_name, parameters=self.selected_parameters(), substeps=h.substeps)
+        return EngineContactModel(self.model_name, h.engine, parameters=self.selected_parameters(), substeps=h.substeps)
+
+    def fitted_summary(self) -> dict:
+        return {
+            "parameters": self.space.describe(self.selected_parameters()),
+            "val_loss": float(self.selected_val_loss),
+        }
+
+
+class SysIDModule(IdentifiedModule):
     """Holds the search configuration and, once the search is over, the parameters selected on val."""
 
     def __init__(
@@ -58,45 +104,32 @@ class SysIDModule(pl.LightningModule):
         substeps: int = 1,
         engine: str = "mujoco",
     ):
-        super().__init__()
-        if engine not in engines.ENGINE_CLASSES:
-            known = ", ".join(engines.ENGINE_CLASSES)
-            raise ContactbenchError(f"model.module.engine is {engine!r} (expected one of {known})")
+        super().__init__(dataset, engine)
         for name, value in (("evaluations", evaluations), ("restarts", restarts), ("num_workers", num_workers)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
         self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
-        self.automatic_optimization = False
-        self.dataset = dataset
-        engines.engine(engine).check_scene(dataset)
-        self.space = search_space(engine, dataset.n_bodies)
-        self.register_buffer("selected", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64))
-        self.register_buffer("selected_val_loss", torch.tensor(float("inf"), dtype=torch.float64))
+
+    @property
+    def model_name(self) -> str:
+        return "sysid" if self.hparams.engine == "mujoco" else f"sysid_{self.hparams.engine}"
 
     @property
     def generations_per_restart(self) -> int:
         return -(-self.hparams.evaluations // self.hparams.num_workers)
 
-    def configure_optimizers(self):
-        return None
 
-    def training_step(self, batch, batch_index):
-        return None  # the NevergradSearch callback does the work of a step
+def save_last_checkpoint(trainer: pl.Trainer) -> None:
+    """checkpoints/last.ckpt after every step of a search, atomically: a SIGKILL loses at most the step in flight.
 
-    def to_contact_model(self) -> EngineContactModel:
-        if not torch.isfinite(self.selected).all():
-            raise RuntimeError("the SysID search has not selected parameters yet (no finished run in this checkpoint)")
-        parameters = self.space.from_vector(self.selected.cpu().numpy())
-        h = self.hparams
-        if h.engine == "mujoco":
-            return MujocoContactModel(name="sysid", parameters=parameters, substeps=h.substeps)
-        return EngineContactModel(f"sysid_{h.engine}", h.engine, parameters=parameters, substeps=h.substeps)
-
-    def fitted_summary(self) -> dict:
-        return {
-            "parameters": self.space.describe(self.space.from_vector(self.selected.cpu().numpy())),
-            "val_loss": float(self.selected_val_loss),
-        }
+    (Lightning's step counter does not move without a torch optimiser, so ModelCheckpoint cannot schedule this.)
+    """
+    path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(".last.ckpt.partial")
+    # Lightning's default checkpoint carries callback states: a search's are numbers only, loaded weights_only
+    trainer.save_checkpoint(str(partial))
+    os.replace(partial, path)
 
 
 def stop_recast_threads() -> None:
@@ -187,19 +220,7 @@ class NevergradSearch(pl.Callback):
         if self.generation >= module.generations_per_restart:
             self._finish_restart(module)
             trainer.should_stop = self.restart >= h.restarts
-        self._save_checkpoint(trainer)
-
-    def _save_checkpoint(self, trainer) -> None:
-        """After every generation, atomically: a SIGKILL loses at most the generation in flight.
-
-        (Lightning's step counter does not move without a torch optimiser, so ModelCheckpoint cannot schedule this.)
-        """
-        path = Path(trainer.default_root_dir) / "checkpoints" / "last.ckpt"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_name(".last.ckpt.partial")
-        # Lightning's default checkpoint carries callback states: this search's are numbers only, loaded weights_only
-        trainer.save_checkpoint(str(partial))
-        os.replace(partial, path)
+        save_last_checkpoint(trainer)
 
     def _new_optimizer(self, module: SysIDModule):
         h = module.hparams
@@ -268,8 +289,7 @@ class NevergradSearch(pl.Callback):
         self.restart += 1
         self.generation = 0
         best = min(self.results, key=lambda r: r["val_loss"])
-        module.selected.copy_(torch.tensor(best["vector"], dtype=torch.float64))
-        module.selected_val_loss.fill_(best["val_loss"])
+        module.select(best["vector"], best["val_loss"])
 
     def _val_indices(self, module: SysIDModule) -> np.ndarray:
         n = self.val_objective.n_trajectories

@@ -1,0 +1,395 @@
+"""SysID by gradient descent through MuJoCo's differentiable port, MJX (model=sysid_mjx): sysid's parameters, eq. (1).
+
+The same search space, objective and selection as `sysid` (module.py), another optimiser: Adam on short windows of
+the train tosses, each simulated in MJX from its recorded state, the gradient of eq. (1) by forward-mode
+differentiation (`jax.jacfwd`: MJX's Newton solver runs a `while_loop`, which reverse mode cannot differentiate,
+and the parameters are few). Every `val_every` steps the C-MuJoCo val objective, the one `sysid` selects with,
+scores the current parameters; the best is kept. MJX detects mesh-plane contacts differently from C MuJoCo (up to 4
+contacts where C has 3; docs/DIFFERENTIABLE.md), so MJX gives directions only: never a score.
+
+The parameters are searched in box coordinates: each is lo + (hi - lo) * sigmoid(u) (the stiffness in log space),
+so every step stays inside Table 2c's domain, and the search starts where NGOpt's does (the domain's centre,
+damping 50).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import time
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+
+from contactbench.errors import ContactbenchError, NotApplicable
+from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint
+from contactbench.models.sysid.objective import ConfigurationObjective
+from contactbench.models.sysid.search_space import SearchSpace
+from contactbench.protocol import make_context
+from contactbench.recordings import Recordings, Split
+from contactbench.sim import engines
+from contactbench.sim.mujoco_scene import build_model, pack_state
+
+log = logging.getLogger(__name__)
+
+ADAM_BETAS = (0.9, 0.999)
+ANGLE_EPSILON = 1e-12  # inside eq. (1)'s angle's square root: its derivative is infinite at zero error
+
+
+def quiet_device_lines(record: logging.LogRecord) -> bool:
+    """MJX logs "Using JAX default device" on the root logger at every model it places or traces: noise in a run's
+    log."""
+    return not (record.name == "root" and str(record.msg).startswith("Using JAX default device"))
+
+
+def decayed(lr: float, step: int, steps: int) -> float:
+    """A cosine from lr down to a tenth of it over the steps: window gradients are noisy, late steps settle."""
+    return lr * (0.1 + 0.45 * (1 + np.cos(np.pi * step / max(steps, 1))))
+
+
+def adam_step(
+    coordinates: np.ndarray, moments: tuple[np.ndarray, np.ndarray], gradient: np.ndarray, lr: float, step: int
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Adam's update of coordinates at (0-based) step `step`: the new coordinates and first and second moments."""
+    beta1, beta2 = ADAM_BETAS
+    first = beta1 * moments[0] + (1 - beta1) * gradient
+    second = beta2 * moments[1] + (1 - beta2) * gradient**2
+    corrected = first / (1 - beta1 ** (step + 1)), second / (1 - beta2 ** (step + 1))
+    return coordinates - lr * corrected[0] / (np.sqrt(corrected[1]) + 1e-8), (first, second)
+
+
+class BoxCoordinates:
+    """SearchSpace vectors (per-object friction, floor friction, stiffness, damping) <-> unbounded coordinates u."""
+
+    def __init__(self, space: SearchSpace):
+        k = space.n_bodies
+        self.low = np.array([space.friction[0]] * (k + 1) + [np.log(space.stiffness[0]), space.damping[0]])
+        self.high = np.array([space.friction[1]] * (k + 1) + [np.log(space.stiffness[1]), space.damping[1]])
+        self.logarithmic = np.arange(k + 3) == k + 1
+        self.start = self.to_coordinates(
+            np.array([np.mean(space.friction)] * (k + 1) + [np.sqrt(np.prod(space.stiffness)), space.initial_damping])
+        )
+
+    def to_vector(self, coordinates, xp=np):
+        """The search-space vector of coordinates (numpy or jax.numpy arrays, `xp` the module)."""
+        inside = self.low + (self.high - self.low) / (1 + xp.exp(-coordinates))
+        return xp.where(self.logarithmic, xp.exp(inside), inside)
+
+    def to_coordinates(self, vector: np.ndarray) -> np.ndarray:
+        inside = np.where(self.logarithmic, np.log(vector), vector)
+        fraction = np.clip((inside - self.low) / (self.high - self.low), 1e-9, 1 - 1e-9)
+        return np.log(fraction / (1 - fraction))
+
+
+class MjxWindows:
+    """Eq. (1) over windows of recorded tosses simulated in MJX, and its gradient in box coordinates (jit once)."""
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        space: SearchSpace,
+        context_frames: int,
+        window_frames: int,
+        position_exponent: int,
+        substeps: int = 1,
+    ):
+        import jax  # a heavy import that only this model needs
+
+        jax.config.update("jax_enable_x64", True)
+        with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" (its GPU back-end)
+            from mujoco import mjx
+        from jax import numpy as jnp
+
+        logging.getLogger().addFilter(quiet_device_lines)
+
+        self.jax, self.jnp = jax, jnp
+        self.coordinates = BoxCoordinates(space)
+        self.context_frames, self.window_frames, self.substeps = context_frames, window_frames, substeps
+        model = build_model(
+            dataset.scene, space.from_vector(self.coordinates.to_vector(self.coordinates.start)), substeps
+        )
+        body_of_geom = model.geom_bodyid - 1  # recordings body index (-1: the floor)
+        floor_pairs = body_of_geom[model.pair_geom1] < 0
+        if not floor_pairs.all():
+            raise NotApplicable(f"{dataset.name}: sysid_mjx writes floor pairs only; this scene has body-body pairs")
+        pair_body = np.maximum(body_of_geom[model.pair_geom1], body_of_geom[model.pair_geom2])
+        geom_body = np.maximum(body_of_geom, 0)
+        is_body_geom = body_of_geom >= 0
+        reference = mjx.put_model(model)
+        widths = jnp.asarray(dataset.widths())
+        n_bodies, exponent = dataset.n_bodies, position_exponent
+        to_vector = self.coordinates.to_vector
+
+        def simulated(coordinates):
+            vector = to_vector(coordinates, jnp)
+            objects, floor = vector[:n_bodies], vector[n_bodies]
+            sliding = jnp.maximum(objects[pair_body], floor)
+            return reference.replace(
+                pair_friction=reference.pair_friction.at[:, 0].set(sliding).at[:, 1].set(sliding),
+                pair_solref=jnp.stack(
+                    [
+                        -vector[n_bodies + 1] * jnp.ones(len(pair_body)),
+                        -vector[n_bodies + 2] * jnp.ones(len(pair_body)),
+                    ],
+                    axis=-1,
+                ),
+                geom_friction=reference.geom_friction.at[:, 0].set(
+                    jnp.where(is_body_geom, objects[geom_body], reference.geom_friction[:, 0])
+                ),
+            )
+
+        def rollout(model, qpos, qvel):
+            data = mjx.make_data(model).replace(qpos=qpos, qvel=qvel)
+
+            def frame(data, _):
+                data = jax.lax.fori_loop(0, substeps, lambda _, d: mjx.step(model, d), data)
+                return data, data.qpos
+
+            return jax.lax.scan(frame, data, None, length=window_frames)[1]  # [W, 7K]
+
+        def loss(coordinates, qpos, qvel, truth):
+            model = simulated(coordinates)
+            poses = jax.vmap(rollout, in_axes=(None, 0, 0))(model, qpos, qvel).reshape(truth.shape)
+            offset = poses[..., :3] - truth[..., :3]
+            positional = jnp.sum(offset * offset, axis=-1) @ (2.0 / widths) ** exponent
+            dot = jnp.sum(poses[..., 3:] * truth[..., 3:], axis=-1)
+            norms = jnp.sum(poses[..., 3:] ** 2, axis=-1) * jnp.sum(truth[..., 3:] ** 2, axis=-1)
+            angle = 2.0 * jnp.arctan2(jnp.sqrt(jnp.maximum(norms - dot * dot, 0.0) + ANGLE_EPSILON), jnp.abs(dot))
+            return jnp.mean(positional + jnp.sum(angle * angle, axis=-1))
+
+        def value_and_gradient(coordinates, qpos, qvel, truth):
+            return loss(coordinates, qpos, qvel, truth), jax.jacfwd(loss)(coordinates, qpos, qvel, truth)
+
+        self._value_and_gradient = jax.jit(value_and_gradient)
+
+    def windows(self, split: Split, dt: float, count: int, rng: np.random.Generator):
+        """`count` windows drawn uniformly from every (toss, start) where a context and window_frames frames after it
+        fit: MJX's initial states (from the context, as the protocol makes them) and the recorded frames after."""
+        span = self.context_frames + self.window_frames
+        starts_per_toss = split.lengths - span + 1
+        if starts_per_toss.max() < 1:
+            raise ContactbenchError(
+                f"no toss is longer than context_frames + window_frames = {span} frames (model.module.window_frames)"
+            )
+        valid = np.maximum(starts_per_toss, 0)
+        chosen = rng.choice(valid.sum(), size=count, replace=count > valid.sum())
+        tosses = np.searchsorted(np.cumsum(valid), chosen, side="right")
+        starts = chosen - np.concatenate([[0], np.cumsum(valid)[:-1]])[tosses]
+        frames = starts[:, None] + np.arange(span)
+        window = Split(
+            poses=split.poses[tosses[:, None], frames],
+            lengths=np.full(count, span),
+            velocities=None if split.velocities is None else split.velocities[tosses[:, None], frames],
+        )
+        context = make_context(window, dt, self.context_frames)
+        qpos, qvel = pack_state(context.poses[:, -1], context.velocities[:, -1])
+        return qpos, qvel, window.poses[:, self.context_frames :]
+
+    def value_and_gradient(self, coordinates: np.ndarray, windows) -> tuple[float, np.ndarray]:
+        value, gradient = self._value_and_gradient(self.jnp.asarray(coordinates), *map(self.jnp.asarray, windows))
+        return float(value), np.asarray(gradient, dtype=np.float64)
+
+
+class GradientSysIDModule(IdentifiedModule):
+    """sysid's parameters identified by Adam through MJX; holds the settings and what val selected."""
+
+    model_name = "sysid_mjx"
+
+    def __init__(
+        self,
+        dataset: Recordings,
+        context_frames: int,
+        steps: int,
+        windows: int,
+        window_frames: int,
+        lr: float,
+        val_every: int,
+        val_trajectories: int | None,
+        seed: int = 0,
+        position_exponent: int = 2,
+        unstable_penalty: float = 1e3,
+        timeout_s: float = 120.0,
+        nthread: int | None = None,
+        substeps: int = 1,
+        engine: str = "mujoco",
+    ):
+        if engine != "mujoco":
+            raise ContactbenchError(f"model.module.engine is {engine!r} (expected mujoco: MJX is MuJoCo's port)")
+        engines.require_flat(dataset.scene, "MJX")
+        super().__init__(dataset, engine)
+        for name, value in (("steps", steps), ("windows", windows), ("window_frames", window_frames)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
+        self.save_hyperparameters(ignore=["dataset"], logger=False)
+
+
+class AdamThroughMjx(pl.Callback):
+    """One Adam step per training step on freshly drawn train windows; val (C MuJoCo) every `val_every` steps and at
+    the start and the end, the best kept. The checkpoint holds numbers only: a resumed run draws the same windows
+    (seeded by step) and continues exactly."""
+
+    def __init__(self):
+        self.step = 0
+        self.coordinates: np.ndarray | None = None
+        self.moments = (None, None)
+        self.best = {"vector": [], "val_loss": float("inf")}
+        self.skipped = 0  # steps whose loss or gradient was not finite (left out)
+        self.seconds = {"compile": 0.0, "train": 0.0, "val": 0.0}
+
+    def on_fit_start(self, trainer, module: GradientSysIDModule) -> None:
+        h = module.hparams
+        self.windows = MjxWindows(
+            module.dataset, module.space, h.context_frames, h.window_frames, h.position_exponent, h.substeps
+        )
+        if self.coordinates is None:
+            self.coordinates = self.windows.coordinates.start.copy()
+            self.moments = (np.zeros_like(self.coordinates), np.zeros_like(self.coordinates))
+        self.rollouts = engines.engine("mujoco").rollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
+        self.val_objective = ConfigurationObjective(
+            module.dataset,
+            "val",
+            h.context_frames,
+            self.rollouts,
+            unstable_penalty=h.unstable_penalty,
+            timeout_s=h.timeout_s,
+            position_exponent=h.position_exponent,
+        )
+        self.train_split = module.dataset.split("train")
+        self.compiled = False  # in this process: the first step's time is jax's compile
+
+    def on_fit_end(self, trainer, module) -> None:
+        self.val_objective.close()
+        self.rollouts.close()
+
+    def on_train_batch_start(self, trainer, module: GradientSysIDModule, batch, batch_index) -> None:
+        h = module.hparams
+        if self.step >= h.steps:  # a resumed run that had already finished
+            trainer.should_stop = True
+            return
+        if self.step == 0 and not self.best["vector"]:  # the start (NGOpt's) is a candidate too
+            self._validate(module)
+        rng = np.random.default_rng([h.seed, self.step])
+        windows = self.windows.windows(self.train_split, module.dataset.dt, h.windows, rng)
+        started = time.perf_counter()
+        loss, gradient = self.windows.value_and_gradient(self.coordinates, windows)
+        elapsed = time.perf_counter() - started
+        self.seconds["train" if self.compiled else "compile"] += elapsed
+        self.compiled = True
+        if np.isfinite(loss) and np.isfinite(gradient).all():
+            lr = decayed(h.lr, self.step, h.steps)
+            self.coordinates, self.moments = adam_step(self.coordinates, self.moments, gradient, lr, self.step)
+        else:
+            self.skipped += 1
+        self.step += 1
+        module.log_dict(
+            {
+                "train/loss": loss if np.isfinite(loss) else h.unstable_penalty,
+                "train/skipped_steps": float(self.skipped),
+                "train/seconds": self.seconds["train"],
+                "train/compile_seconds": self.seconds["compile"],
+                **{f"params/{k}": float(v) for k, v in self._describe(module).items()},
+            },
+            on_step=True,
+        )
+        if self.step % h.val_every == 0 or self.step == h.steps:
+            self._validate(module)
+        trainer.should_stop = self.step >= h.steps
+        save_last_checkpoint(trainer)
+
+    def _describe(self, module: GradientSysIDModule) -> dict[str, float]:
+        return module.space.describe(module.space.from_vector(self.windows.coordinates.to_vector(self.coordinates)))
+
+    def _validate(self, module: GradientSysIDModule) -> None:
+        started = time.perf_counter()
+        vector = module.space.to_vector(module.space.from_vector(self.windows.coordinates.to_vector(self.coordinates)))
+        count = module.hparams.val_trajectories
+        n = self.val_objective.n_trajectories
+        indices = (
+            np.arange(n)
+            if not count or count >= n
+            else np.sort(np.random.default_rng([module.hparams.seed, 7]).choice(n, size=count, replace=False))
+        )
+        val_loss = float(self.val_objective([module.space.from_vector(vector)], indices).losses[0])
+        self.seconds["val"] += time.perf_counter() - started
+        if val_loss < self.best["val_loss"]:
+            self.best = {"vector": vector.tolist(), "val_loss": val_loss}
+            module.select(vector, val_loss)
+        module.log_dict({"val/loss": val_loss, "val/seconds": self.seconds["val"]}, on_step=True)
+        log.info("sysid_mjx step %d: val loss %.5f with %s", self.step, val_loss, self._describe(module))
+
+    # ------------------------------------------------------------ checkpointing
+
+    @staticmethod
+    def check_state(state: object, where: str) -> None:
+        check_descent_state(state, where)
+
+    def state_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "skipped": self.skipped,
+            "coordinates": torch.as_tensor(self.coordinates, dtype=torch.float64),
+            "first_moment": torch.as_tensor(self.moments[0], dtype=torch.float64),
+            "second_moment": torch.as_tensor(self.moments[1], dtype=torch.float64),
+            "best_vector": torch.as_tensor(self.best["vector"], dtype=torch.float64),
+            "best_val_loss": float(self.best["val_loss"]),
+            "seconds": dict(self.seconds),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        check_descent_state(state, "checkpoint descent state")
+        self.step, self.skipped = int(state["step"]), int(state["skipped"])
+        self.coordinates = state["coordinates"].numpy().copy()
+        self.moments = (state["first_moment"].numpy().copy(), state["second_moment"].numpy().copy())
+        self.best = {"vector": state["best_vector"].tolist(), "val_loss": float(state["best_val_loss"])}
+        self.seconds = {k: float(v) for k, v in state["seconds"].items()}
+
+
+DESCENT_STATE_FIELDS = (
+    "step",
+    "skipped",
+    "coordinates",
+    "first_moment",
+    "second_moment",
+    "best_vector",
+    "best_val_loss",
+    "seconds",
+)
+
+
+def check_descent_state(state: object, where: str) -> None:
+    """Refuse anything but the numbers-only state AdamThroughMjx.state_dict writes."""
+
+    def fail(field: str, problem: str, expected: str) -> ContactbenchError:
+        return ContactbenchError(f"{where}: field '{field}' {problem} (expected {expected})")
+
+    if not isinstance(state, dict):
+        raise ContactbenchError(f"{where}: is a {type(state).__name__} (expected a dict of numbers)")
+    for name in DESCENT_STATE_FIELDS:
+        if name not in state:
+            raise fail(name, "is missing", "the numbers-only descent state; resume=false starts over")
+    unknown = sorted(set(state) - set(DESCENT_STATE_FIELDS), key=str)
+    if unknown:
+        raise fail(str(unknown[0]), "is not part of the descent state", f"only {', '.join(DESCENT_STATE_FIELDS)}")
+    for name in ("step", "skipped"):
+        if isinstance(state[name], bool) or not isinstance(state[name], int) or state[name] < 0:
+            raise fail(name, f"is {state[name]!r}", "a non-negative integer")
+    size = None
+    for name in ("coordinates", "first_moment", "second_moment"):
+        value = state[name]
+        if not isinstance(value, torch.Tensor) or value.dtype != torch.float64 or value.ndim != 1:
+            raise fail(name, f"is a {type(value).__name__}", "a float64 vector")
+        if not torch.isfinite(value).all() or (size is not None and len(value) != size):
+            raise fail(name, "holds non-finite values or has another length", "finite numbers, one per parameter")
+        size = len(value)
+    best = state["best_vector"]
+    if not isinstance(best, torch.Tensor) or best.dtype != torch.float64 or len(best) not in (0, size):
+        raise fail("best_vector", f"is a {type(best).__name__}", f"a float64 vector of {size} parameters")
+    if not isinstance(state["best_val_loss"], float):
+        raise fail("best_val_loss", f"is {state['best_val_loss']!r}", "a number")
+    seconds = state["seconds"]
+    if not isinstance(seconds, dict) or set(seconds) != {"compile", "train", "val"}:
+        raise fail("seconds", f"is {seconds!r}", "{'compile', 'train', 'val'}: seconds")
+    if not all(isinstance(v, float) for v in seconds.values()):
+        raise fail("seconds", f"is {seconds!r}", "numbers")
