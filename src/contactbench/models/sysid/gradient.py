@@ -23,7 +23,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
-from contactbench.errors import ContactbenchError, NotApplicable
+from contactbench.errors import ContactbenchError
 from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import SearchSpace
@@ -91,7 +91,7 @@ class MjxWindows:
         dataset: Recordings,
         space: SearchSpace,
         context_frames: int,
-        window_frames: int,
+        window_frames: int | None,
         position_exponent: int,
         substeps: int = 1,
     ):
@@ -107,13 +107,12 @@ class MjxWindows:
         self.jax, self.jnp = jax, jnp
         self.coordinates = BoxCoordinates(space)
         self.context_frames, self.window_frames, self.substeps = context_frames, window_frames, substeps
+        # whole tosses: every frame after the context, each toss scored on its own frames (the val objective's form)
+        horizon = window_frames or dataset.split("train").n_frames - context_frames
         model = build_model(
             dataset.scene, space.from_vector(self.coordinates.to_vector(self.coordinates.start)), substeps
         )
-        body_of_geom = model.geom_bodyid - 1  # recordings body index (-1: the floor)
-        floor_pairs = body_of_geom[model.pair_geom1] < 0
-        if not floor_pairs.all():
-            raise NotApplicable(f"{dataset.name}: sysid_mjx writes floor pairs only; this scene has body-body pairs")
+        body_of_geom = model.geom_bodyid - 1  # recordings body index (-1: the floor); flat scenes pair only the floor
         pair_body = np.maximum(body_of_geom[model.pair_geom1], body_of_geom[model.pair_geom2])
         geom_body = np.maximum(body_of_geom, 0)
         is_body_geom = body_of_geom >= 0
@@ -147,9 +146,9 @@ class MjxWindows:
                 data = jax.lax.fori_loop(0, substeps, lambda _, d: mjx.step(model, d), data)
                 return data, data.qpos
 
-            return jax.lax.scan(frame, data, None, length=window_frames)[1]  # [W, 7K]
+            return jax.lax.scan(frame, data, None, length=horizon)[1]  # [W, 7K]
 
-        def loss(coordinates, qpos, qvel, truth):
+        def loss(coordinates, qpos, qvel, truth, scored):
             model = simulated(coordinates)
             poses = jax.vmap(rollout, in_axes=(None, 0, 0))(model, qpos, qvel).reshape(truth.shape)
             offset = poses[..., :3] - truth[..., :3]
@@ -157,35 +156,50 @@ class MjxWindows:
             dot = jnp.sum(poses[..., 3:] * truth[..., 3:], axis=-1)
             norms = jnp.sum(poses[..., 3:] ** 2, axis=-1) * jnp.sum(truth[..., 3:] ** 2, axis=-1)
             angle = 2.0 * jnp.arctan2(jnp.sqrt(jnp.maximum(norms - dot * dot, 0.0) + ANGLE_EPSILON), jnp.abs(dot))
-            return jnp.mean(positional + jnp.sum(angle * angle, axis=-1))
+            errors = jnp.where(scored, positional + jnp.sum(angle * angle, axis=-1), 0.0)
+            return jnp.mean(jnp.sum(errors, axis=-1) / jnp.sum(scored, axis=-1))  # every window counts once
 
-        def value_and_gradient(coordinates, qpos, qvel, truth):
-            return loss(coordinates, qpos, qvel, truth), jax.jacfwd(loss)(coordinates, qpos, qvel, truth)
+        def value_and_gradient(coordinates, qpos, qvel, truth, scored):
+            def twice(coordinates):  # the loss as jacfwd's aux too: one primal pass serves both
+                value = loss(coordinates, qpos, qvel, truth, scored)
+                return value, value
+
+            gradient, value = jax.jacfwd(twice, has_aux=True)(coordinates)
+            return value, gradient
 
         self._value_and_gradient = jax.jit(value_and_gradient)
 
     def windows(self, split: Split, dt: float, count: int, rng: np.random.Generator):
-        """`count` windows drawn uniformly from every (toss, start) where a context and window_frames frames after it
-        fit: MJX's initial states (from the context, as the protocol makes them) and the recorded frames after."""
-        span = self.context_frames + self.window_frames
-        starts_per_toss = split.lengths - span + 1
-        if starts_per_toss.max() < 1:
-            raise ContactbenchError(
-                f"no toss is longer than context_frames + window_frames = {span} frames (model.module.window_frames)"
+        """`count` windows: MJX's initial states (from the context, as the protocol makes them), the recorded frames
+        after them and which of those are scored. With window_frames, drawn uniformly from every (toss, start) where
+        a context and window_frames frames fit; without, whole tosses (each scored up to its own end)."""
+        context = self.context_frames
+        if self.window_frames is None:
+            tosses = np.sort(rng.choice(split.n_trajectories, size=count, replace=count > split.n_trajectories))
+            window = split.select(tosses)
+            scored = np.arange(context, split.n_frames)[None, :] < window.lengths[:, None]
+        else:
+            span = context + self.window_frames
+            valid = np.maximum(split.lengths - span + 1, 0)  # starts per toss
+            if valid.max() < 1:
+                raise ContactbenchError(
+                    f"no toss is longer than context_frames + window_frames = {span} frames "
+                    "(model.module.window_frames; null: whole tosses)"
+                )
+            chosen = rng.choice(valid.sum(), size=count, replace=count > valid.sum())
+            tosses = np.searchsorted(np.cumsum(valid), chosen, side="right")
+            starts = chosen - np.concatenate([[0], np.cumsum(valid)[:-1]])[tosses]
+            frames = starts[:, None] + np.arange(span)
+            window = Split(
+                poses=split.poses[tosses[:, None], frames],
+                lengths=np.full(count, span),
+                velocities=None if split.velocities is None else split.velocities[tosses[:, None], frames],
             )
-        valid = np.maximum(starts_per_toss, 0)
-        chosen = rng.choice(valid.sum(), size=count, replace=count > valid.sum())
-        tosses = np.searchsorted(np.cumsum(valid), chosen, side="right")
-        starts = chosen - np.concatenate([[0], np.cumsum(valid)[:-1]])[tosses]
-        frames = starts[:, None] + np.arange(span)
-        window = Split(
-            poses=split.poses[tosses[:, None], frames],
-            lengths=np.full(count, span),
-            velocities=None if split.velocities is None else split.velocities[tosses[:, None], frames],
-        )
-        context = make_context(window, dt, self.context_frames)
-        qpos, qvel = pack_state(context.poses[:, -1], context.velocities[:, -1])
-        return qpos, qvel, window.poses[:, self.context_frames :]
+            scored = np.ones((count, self.window_frames), dtype=bool)
+        initial = make_context(window, dt, context)
+        qpos, qvel = pack_state(initial.poses[:, -1], initial.velocities[:, -1])
+        truth = np.where(scored[..., None, None], window.poses[:, context:], 0.0)  # frames past the end: unscored
+        return qpos, qvel, truth, scored
 
     def value_and_gradient(self, coordinates: np.ndarray, windows) -> tuple[float, np.ndarray]:
         value, gradient = self._value_and_gradient(self.jnp.asarray(coordinates), *map(self.jnp.asarray, windows))
@@ -203,7 +217,7 @@ class GradientSysIDModule(IdentifiedModule):
         context_frames: int,
         steps: int,
         windows: int,
-        window_frames: int,
+        window_frames: int | None,
         lr: float,
         val_every: int,
         val_trajectories: int | None,
@@ -220,7 +234,9 @@ class GradientSysIDModule(IdentifiedModule):
         engines.require_flat(dataset.scene, "MJX")
         super().__init__(dataset, engine)
         for name, value in (("steps", steps), ("windows", windows), ("window_frames", window_frames)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            if (value is not None or name != "window_frames") and (
+                isinstance(value, bool) or not isinstance(value, int) or value < 1
+            ):
                 raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
         self.save_hyperparameters(ignore=["dataset"], logger=False)
 
