@@ -31,8 +31,9 @@ matrix: $(VENV)/.installed
 slurm-check: $(VENV)/.installed
 	$(BIN)/python cluster/slurm_check.py
 
+# One worker per core, each taking whole test files (module fixtures are built once, servers' ports stay apart).
 test: $(VENV)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 # ruff's lint rules and formatting ([tool.ruff] in pyproject.toml); .ci/run runs it before the tests.
 lint: $(VENV)/.installed
