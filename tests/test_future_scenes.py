@@ -247,9 +247,10 @@ def test_state_layout_of_free_bodies_is_the_plain_one(ring):
     assert StateLayout.of(ring.scene, model).free and model.ngeom == 1 + 12
 
 
-def test_the_gnn_closes_a_hinge_exactly_and_reads_the_terrain(elbow, ramp):
+def elbow_simulator(elbow, **options) -> RigidLearnedSimulator:
+    """A tiny rigid GNN of the elbow scene, its hinge and masses as recorded."""
     scene = MeshScene.of(elbow)
-    simulator = RigidLearnedSimulator(
+    return RigidLearnedSimulator(
         scene,
         elbow.dt,
         elbow.floor_z,
@@ -257,10 +258,15 @@ def test_the_gnn_closes_a_hinge_exactly_and_reads_the_terrain(elbow, ramp):
         collision_radius(scene.widths),
         0.25 * scene.widths.max(),
         joints=tuple(elbow.joints),
-        masses=np.array([0.185, 0.185]),
+        masses=np.array([body.mass for body in elbow.bodies]),
         latent_size=8,
         message_passing_steps=1,
+        **options,
     )
+
+
+def test_the_gnn_closes_a_hinge_exactly_and_reads_the_terrain(elbow, ramp):
+    simulator = elbow_simulator(elbow)
     poses = torch.as_tensor(elbow.split("train").poses[:, 5].copy())
     broken = poses.clone()
     broken[:, 1, :3] += 0.01
@@ -293,20 +299,7 @@ def test_the_rigid_gnn_swings_the_elbow_as_pybullet_does_with_its_joint_reaction
     """With the network silent (no contact), the rigid GNN's integrator is Newton-Euler with the hinge's reaction and
     the recorded damping: it follows the generator's multibody in the air to a few micrometres, keeps the hinge
     before any projection, and the pair's centre of mass falls at g. Leaving the damping out misses by far more."""
-    scene = MeshScene.of(elbow)
-    simulator = RigidLearnedSimulator(
-        scene,
-        elbow.dt,
-        elbow.floor_z,
-        elbow.gravity,
-        collision_radius(scene.widths),
-        0.25 * scene.widths.max(),
-        joints=tuple(elbow.joints),
-        masses=np.array([body.mass for body in elbow.bodies]),
-        solid_inertia=inertia_per_mass(elbow, scene),
-        latent_size=8,
-        message_passing_steps=1,
-    )
+    simulator = elbow_simulator(elbow, solid_inertia=inertia_per_mass(elbow, MeshScene.of(elbow)))
     for parameter in simulator.network.parameters():
         torch.nn.init.zeros_(parameter)
     poses = torch.as_tensor(np.concatenate([elbow.split(name).poses for name in ("train", "val", "test")]))

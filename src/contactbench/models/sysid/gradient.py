@@ -24,7 +24,7 @@ import pytorch_lightning as pl
 import torch
 
 from contactbench.errors import ContactbenchError
-from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint
+from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint, val_subset
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
@@ -320,13 +320,8 @@ class AdamThroughMjx(pl.Callback):
     def _validate(self, module: GradientSysIDModule) -> None:
         started = time.perf_counter()
         vector = module.space.to_vector(module.space.from_vector(self.windows.coordinates.to_vector(self.coordinates)))
-        count = module.hparams.val_trajectories
-        n = self.val_objective.n_trajectories
-        indices = (
-            np.arange(n)
-            if not count or count >= n
-            else np.sort(np.random.default_rng([module.hparams.seed, 7]).choice(n, size=count, replace=False))
-        )
+        h = module.hparams
+        indices = val_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
         val_loss = float(self.val_objective([module.space.from_vector(vector)], indices).losses[0])
         self.seconds["val"] += time.perf_counter() - started
         if val_loss < self.best["val_loss"]:

@@ -132,6 +132,13 @@ def save_last_checkpoint(trainer: pl.Trainer) -> None:
     os.replace(partial, path)
 
 
+def val_subset(n: int, count: int | None, seed: int) -> np.ndarray:
+    """The val tosses a search scores its candidates on: all, or the same `count` of them at every check."""
+    if not count or count >= n:
+        return np.arange(n)
+    return np.sort(np.random.default_rng([seed, 7]).choice(n, size=count, replace=False))
+
+
 def stop_recast_threads() -> None:
     """nevergrad's recast optimisers run in non-daemon threads that would keep the process alive (issues #180, #325)."""
     for thread in threading.enumerate():
@@ -268,7 +275,7 @@ class NevergradSearch(pl.Callback):
     def _finish_restart(self, module: SysIDModule) -> None:
         h = module.hparams
         recommendation = module.space.to_parameters(self.optimizer.provide_recommendation().value)
-        val_indices = self._val_indices(module)
+        val_indices = val_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
         val_loss = float(self.val_objective([recommendation], val_indices).losses[0])
         vector = module.space.to_vector(recommendation)
         self.results.append({"vector": vector.tolist(), "val_loss": val_loss})
@@ -290,13 +297,6 @@ class NevergradSearch(pl.Callback):
         self.generation = 0
         best = min(self.results, key=lambda r: r["val_loss"])
         module.select(best["vector"], best["val_loss"])
-
-    def _val_indices(self, module: SysIDModule) -> np.ndarray:
-        n = self.val_objective.n_trajectories
-        count = module.hparams.val_trajectories
-        if not count or count >= n:
-            return np.arange(n)
-        return np.sort(np.random.default_rng([module.hparams.seed, 7]).choice(n, size=count, replace=False))
 
     # ------------------------------------------------------------ checkpointing
 
