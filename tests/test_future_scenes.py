@@ -394,6 +394,6 @@ def test_train_runs_every_model_on_the_new_families_or_skips_it_in_one_line(tmp_
     scored = json.loads((tmp_path / "gnn" / "test" / "metrics.json").read_text())
     assert scored["joint_gap_m"] < 1e-9 and scored["joint_axis_error_rad"] < 1e-9  # the GNN keeps the hinge
     assert np.isfinite(scored["pos_err"])
-    for model in ("sysid_bullet", "hybrid", "residual", "gnn_paper"):
+    for model in ("sysid_bullet", "sysid_mjx", "hybrid", "residual", "gnn_paper"):
         with pytest.raises(NotApplicable):
             runs.train(config(model), tmp_path / model)

@@ -46,6 +46,7 @@ MODEL_COLOURS = {
     "mujoco_default": "tab:blue",
     "mujoco_fixed": "tab:orange",
     "sysid": "tab:green",
+    "sysid_mjx": "yellowgreen",
     "gnn": "tab:red",
     "gnn_paper": "tab:purple",
     "hybrid": "tab:brown",
