@@ -88,6 +88,13 @@ def skew(vectors: torch.Tensor) -> torch.Tensor:
     return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*vectors.shape[:-1], 3, 3)
 
 
+def in_world(orientations: torch.Tensor, matrices: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+    """Body-axes matrices [K, 3, 3] applied to world vectors [..., K, 3] of bodies at orientations [..., K, 4]:
+    R M Rᵀ v."""
+    in_body = quaternions.rotate(quaternions.conjugate(orientations), vectors)
+    return quaternions.rotate(orientations, (matrices @ in_body[..., None])[..., 0])
+
+
 def padded_rows(rows: list) -> torch.Tensor:
     """Arrays (or slices, as their indices) of different lengths stacked, each padded to the longest by repeating
     its first entry: a repeated axis or vertex changes no separating-axis test."""
@@ -312,9 +319,7 @@ class RigidLearnedSimulator(LearnedSimulator):
         offsets = vertices - centroids[:, self.node_body]
         orientations = poses[..., 3:]
         moments = self.per_body_sum(torch.linalg.cross(offsets, vertex_accelerations, dim=-1))
-        # J⁻¹ in world axes is R J_rest⁻¹ Rᵀ
-        in_body = quaternions.rotate(quaternions.conjugate(orientations), moments)
-        angular = quaternions.rotate(orientations, (self.inverse_geometric_inertia @ in_body[..., None])[..., 0])
+        angular = in_world(orientations, self.inverse_geometric_inertia, moments)
         at_centroid = self.per_body_sum(vertex_accelerations) / self.vertex_counts[:, None]
         return at_centroid + torch.linalg.cross(angular, poses[..., :3] - centroids, dim=-1), angular
 
@@ -355,18 +360,12 @@ class RigidLearnedSimulator(LearnedSimulator):
         current = poses[:, -1]
         velocity, spin = self.velocities(poses[:, -2], current)
         orientations = current[..., 3:]
-        # world inverse inertia per body [B, K, 3, 3]: R (m I_per_mass)⁻¹ Rᵀ
-        rotation = quaternions.rotate(orientations[..., None, :], self.identity)  # [B, K, 3 (columns), 3]
-        rotation = rotation.transpose(-1, -2)
-        inverse_inertia = (
-            rotation @ self.inverse_inertia_per_mass @ rotation.transpose(-1, -2) / self.body_masses[:, None, None]
-        )
         following_velocity = velocity + linear * self.dt
-        following_spin = spin + angular * self.dt + self.damping_impulses(orientations, spin, inverse_inertia)
+        following_spin = spin + angular * self.dt + self.spin_change(orientations, self.damping_torques(current, spin))
         rows, residuals = self.joint_rows(current, following_velocity, following_spin)  # [B, R, K, 6], [B, R]
+        # each row's impulse turned into the bodies' velocity changes: M⁻¹ Jᵀ
         mobility = torch.cat(
-            [rows[..., :3] / self.body_masses[:, None], (inverse_inertia[:, None] @ rows[..., 3:, None])[..., 0]],
-            dim=-1,
+            [rows[..., :3] / self.body_masses[:, None], self.spin_change(orientations[:, None], rows[..., 3:])], dim=-1
         )
         impulses = torch.linalg.solve(torch.einsum("brkd,bskd->brs", rows, mobility), -residuals)
         change = torch.einsum("brkd,br->bkd", mobility, impulses)
@@ -375,21 +374,20 @@ class RigidLearnedSimulator(LearnedSimulator):
             (following_spin + change[..., 3:] - spin) / self.dt,
         )
 
-    def damping_impulses(
-        self, orientations: torch.Tensor, spin: torch.Tensor, inverse_inertia: torch.Tensor
-    ) -> torch.Tensor:
-        """The change of spin [B, K, 3] over a step from each hinge's damping torque −c q̇ at the step's start (equal and
-        opposite on its two bodies; explicit, as the generator applies it)."""
-        change = torch.zeros_like(spin)
+    def spin_change(self, orientations: torch.Tensor, impulses: torch.Tensor) -> torch.Tensor:
+        """The change of each body's spin [..., K, 3] under angular impulses [..., K, 3] (world axes): I⁻¹ in world."""
+        return in_world(orientations, self.inverse_inertia_per_mass, impulses) / self.body_masses[:, None]
+
+    def damping_torques(self, current: torch.Tensor, spin: torch.Tensor) -> torch.Tensor:
+        """Each hinge's damping −c q̇ at the step's start, as angular impulses over the step [B, K, 3], equal and
+        opposite on its two bodies (explicit, as the generator applies it)."""
+        impulses = torch.zeros_like(spin)
         for joint, axis in zip(self.joints, self.joint_axes):
-            if joint.damping == 0:
-                continue
-            axis = quaternions.rotate(orientations[:, joint.parent], axis)
+            axis = quaternions.rotate(current[:, joint.parent, 3:], axis)
             rate = ((spin[:, joint.child] - spin[:, joint.parent]) * axis).sum(-1, keepdim=True)
-            torque = -joint.damping * rate * axis * self.dt
-            change[:, joint.child] += (inverse_inertia[:, joint.child] @ torque[..., None])[..., 0]
-            change[:, joint.parent] -= (inverse_inertia[:, joint.parent] @ torque[..., None])[..., 0]
-        return change
+            impulses[:, joint.child] -= joint.damping * rate * axis * self.dt
+            impulses[:, joint.parent] += joint.damping * rate * axis * self.dt
+        return impulses
 
     def joint_rows(
         self, current: torch.Tensor, velocity: torch.Tensor, spin: torch.Tensor

@@ -25,7 +25,6 @@ import torch
 
 from contactbench.errors import ContactbenchError
 from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint, val_subset
-from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
 from contactbench.recordings import Recordings, Split
@@ -262,16 +261,8 @@ class AdamThroughMjx(pl.Callback):
         if self.coordinates is None:
             self.coordinates = self.windows.coordinates.start.copy()
             self.moments = (np.zeros_like(self.coordinates), np.zeros_like(self.coordinates))
-        self.rollouts = engines.engine("mujoco").rollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
-        self.val_objective = ConfigurationObjective(
-            module.dataset,
-            "val",
-            h.context_frames,
-            self.rollouts,
-            unstable_penalty=h.unstable_penalty,
-            timeout_s=h.timeout_s,
-            position_exponent=h.position_exponent,
-        )
+        self.rollouts = module.rollouts()
+        self.val_objective = module.objective("val", self.rollouts)
         self.train_split = module.dataset.split("train")
         self.compiled = False  # in this process: the first step's time is jax's compile
 
@@ -314,17 +305,21 @@ class AdamThroughMjx(pl.Callback):
         trainer.should_stop = self.step >= h.steps
         save_last_checkpoint(trainer)
 
+    def _parameters(self, module: GradientSysIDModule):
+        return module.space.from_vector(self.windows.coordinates.to_vector(self.coordinates))
+
     def _describe(self, module: GradientSysIDModule) -> dict[str, float]:
-        return module.space.describe(module.space.from_vector(self.windows.coordinates.to_vector(self.coordinates)))
+        return module.space.describe(self._parameters(module))
 
     def _validate(self, module: GradientSysIDModule) -> None:
         started = time.perf_counter()
-        vector = module.space.to_vector(module.space.from_vector(self.windows.coordinates.to_vector(self.coordinates)))
+        parameters = self._parameters(module)
         h = module.hparams
         indices = val_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
-        val_loss = float(self.val_objective([module.space.from_vector(vector)], indices).losses[0])
+        val_loss = float(self.val_objective([parameters], indices).losses[0])
         self.seconds["val"] += time.perf_counter() - started
         if val_loss < self.best["val_loss"]:
+            vector = module.space.to_vector(parameters)
             self.best = {"vector": vector.tolist(), "val_loss": val_loss}
             module.select(vector, val_loss)
         module.log_dict({"val/loss": val_loss, "val/seconds": self.seconds["val"]}, on_step=True)

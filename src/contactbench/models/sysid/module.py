@@ -61,6 +61,24 @@ class IdentifiedModule(pl.LightningModule):
     def training_step(self, batch, batch_index):
         return None  # the callback does the work of a step
 
+    def rollouts(self):
+        """The identified engine's batched rollouts of this dataset's scene (close them when done)."""
+        h = self.hparams
+        return engines.engine(h.engine).rollouts(self.dataset, nthread=h.nthread, substeps=h.substeps)
+
+    def objective(self, split: str, rollouts) -> ConfigurationObjective:
+        """Eq. (1) on a split with this search's settings: what every search is told and selected by."""
+        h = self.hparams
+        return ConfigurationObjective(
+            self.dataset,
+            split,
+            h.context_frames,
+            rollouts,
+            unstable_penalty=h.unstable_penalty,
+            timeout_s=h.timeout_s,
+            position_exponent=h.position_exponent,
+        )
+
     def select(self, vector, val_loss: float) -> None:
         self.selected.copy_(torch.as_tensor(np.asarray(vector, dtype=np.float64)))
         self.selected_val_loss.fill_(float(val_loss))
@@ -171,15 +189,9 @@ class NevergradSearch(pl.Callback):
 
     def on_fit_start(self, trainer, module: SysIDModule) -> None:
         h = module.hparams
-        simulator = engines.engine(h.engine)
-        self.rollouts = rollouts = simulator.rollouts(module.dataset, nthread=h.nthread, substeps=h.substeps)
-        penalties = {
-            "unstable_penalty": h.unstable_penalty,
-            "timeout_s": h.timeout_s,
-            "position_exponent": h.position_exponent,
-        }
-        self.train_objective = ConfigurationObjective(module.dataset, "train", h.context_frames, rollouts, **penalties)
-        self.val_objective = ConfigurationObjective(module.dataset, "val", h.context_frames, rollouts, **penalties)
+        self.rollouts = module.rollouts()
+        self.train_objective = module.objective("train", self.rollouts)
+        self.val_objective = module.objective("val", self.rollouts)
         log.info(
             "SysID search: restart %d/%d, generation %d, %d evaluations done so far (%d per restart)",
             min(self.restart + 1, h.restarts),
