@@ -22,6 +22,11 @@ the rollout loss non-smooth); evolution strategies on whole train rollouts (806-
 members, 64 tosses a generation, 80 generations) 0.234-0.256, never clearly below MuJoCo alone; a per-step angular
 damping in contact, 0.2392 / 0.3875 at its best.
 
+`gradient: mjx` replaces the linearised adjoint by reverse mode through MJX (through_mjx.py): exact, the features'
+own dependence on the state included, over windows up to whole tosses (`unroll`), optionally cut every `truncation`
+frames. Measured on the real cube (docs/DIFFERENTIABLE.md): no window length or truncation beat SysID on val; beyond
+4 frames the gradients of different batches agree no better than noise.
+
 Selection is on the val split's rollout position error after every epoch (`models.selection.ValRollouts`, as for
 every Lightning-trained model; checkpoint and early stopping on `val/pos_err`). The identified MuJoCo alone is
 scored on val too: if no epoch beats it, the fitted model is MuJoCo without the correction (fitted.json says
@@ -43,10 +48,12 @@ from torch.utils.data import DataLoader
 
 from contactbench import rotations
 from contactbench.config import generations
+from contactbench.errors import ContactbenchError
 from contactbench.kinematics import estimate_velocities
 from contactbench.models.base import ContactModel
 from contactbench.models.residual import correction
 from contactbench.models.residual.correction import Bodies, Predictor
+from contactbench.models.residual.through_mjx import MjxResidualWindows
 from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
 from contactbench.models.sysid.search_space import SearchSpace
@@ -56,6 +63,7 @@ from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velociti
 from contactbench.sim.rollout import MujocoRollouts
 
 log = logging.getLogger(__name__)
+GRADIENTS = ("linearised", "mjx")  # how stage two differentiates the rollout: MuJoCo's finite differences, or MJX
 STD_FLOOR = 1e-6  # a constant feature (a single body's neighbour) or target stays finite once standardised
 
 
@@ -193,8 +201,18 @@ class ResidualModule(pl.LightningModule):
         seed: int = 0,
         nthread: int | None = None,
         substeps: int = 1,
+        gradient: str = "linearised",
+        solver_iterations: int = 10,
+        truncation: int | None = None,
     ):
         super().__init__()
+        if gradient not in GRADIENTS:
+            raise ContactbenchError(f"model.module.gradient is {gradient!r} (expected one of {', '.join(GRADIENTS)})")
+        for name, value in (("solver_iterations", solver_iterations), ("truncation", truncation)):
+            if (value is not None or name != "truncation") and (
+                isinstance(value, bool) or not isinstance(value, int) or value < 1
+            ):
+                raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
         # Plain values only: a checkpoint's hyperparameters must open with weights_only=True.
         sysid = {str(key): value for key, value in dict(sysid).items()}
         hidden = tuple(int(width) for width in hidden)
@@ -220,6 +238,8 @@ class ResidualModule(pl.LightningModule):
         self.register_buffer("val_pos_err", torch.tensor(float("inf"), dtype=torch.float64))
         self._simulator: MujocoRollouts | None = None
         self._jacobian_data: mujoco.MjData | None = None
+        self._mjx_windows: MjxResidualWindows | None = None
+        self.skipped_batches = 0
 
     # ------------------------------------------------------------ stage one: SysID, then statistics
 
@@ -381,13 +401,53 @@ class ResidualModule(pl.LightningModule):
             mujoco.mjd_transitionFD(model, data, 1e-6, False, out[i], None, None, None)
         return out
 
+    def rollout_loss_through_mjx(self, split: str, segments: torch.Tensor) -> torch.Tensor:
+        """`rollout_loss`'s windows and eq. (1) terms, rolled out in MJX and differentiated exactly by reverse mode
+        (through_mjx.py): a surrogate whose value is the loss and whose gradient is MJX's. A window batch whose
+        loss or gradient is not finite contributes nothing (logged as `train/skipped_batches`)."""
+        recorded = self.dataset.split(split)
+        trajectory, first = segments[:, 0].cpu().numpy(), segments[:, 1].cpu().numpy()
+        qpos, qvel = recorded_states(recorded, trajectory, first, self.bodies.dt)
+        frames = first[:, None] + 1 + np.arange(self.hparams.unroll)
+        lengths = recorded.lengths[trajectory][:, None]
+        truth = recorded.poses[trajectory[:, None], np.minimum(frames, lengths - 1)]
+        if self._mjx_windows is None:
+            h = self.hparams
+            self._mjx_windows = MjxResidualWindows(
+                self.dataset,
+                self.identified,
+                h.contact_margin,
+                h.max_correction,
+                h.solver_iterations,
+                h.substeps,
+                h.truncation,
+            )
+        value, gradient = self._mjx_windows.value_and_gradient(
+            MjxResidualWindows.weights(self), qpos, qvel, truth, frames < lengths
+        )
+        layers = [layer for layer in self.network if isinstance(layer, nn.Linear)]
+        finite = np.isfinite(value) and all(np.isfinite(part).all() for pair in gradient for part in pair)
+        self.skipped_batches += 0 if finite else 1
+        surrogate = torch.zeros(())
+        for layer, (weight, bias) in zip(layers, gradient if finite else []):
+            surrogate = surrogate + (layer.weight * torch.as_tensor(weight, dtype=layer.weight.dtype)).sum()
+            surrogate = surrogate + (layer.bias * torch.as_tensor(bias, dtype=layer.bias.dtype)).sum()
+        return surrogate - surrogate.detach() + (value if finite else 0.0)
+
+    def window_loss(self, split: str, segments: torch.Tensor) -> torch.Tensor:
+        if self.hparams.gradient == "mjx":
+            return self.rollout_loss_through_mjx(split, segments)
+        return self.rollout_loss(split, segments)
+
     def training_step(self, batch: torch.Tensor, batch_index: int) -> torch.Tensor:
-        loss = self.rollout_loss("train", batch)
+        loss = self.window_loss("train", batch)
         self.log("train/loss", loss, on_step=False, on_epoch=True, batch_size=len(batch))
+        if self.hparams.gradient == "mjx":
+            self.log("train/skipped_batches", float(self.skipped_batches), on_step=False, on_epoch=True)
         return loss
 
     def validation_step(self, batch: torch.Tensor, batch_index: int) -> None:
-        self.log("val/loss", self.rollout_loss("val", batch), on_step=False, on_epoch=True, batch_size=len(batch))
+        self.log("val/loss", self.window_loss("val", batch), on_step=False, on_epoch=True, batch_size=len(batch))
 
     def record_selection(self, errors: dict[str, float]) -> None:
         """ValRollouts' scores of the corrected model: kept with the checkpoint, beside MuJoCo alone's."""

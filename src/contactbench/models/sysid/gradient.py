@@ -7,6 +7,9 @@ and the parameters are few). Every `val_every` steps the C-MuJoCo val objective,
 scores the current parameters; the best is kept. MJX detects mesh-plane contacts differently from C MuJoCo (up to 4
 contacts where C has 3; docs/DIFFERENTIABLE.md), so MJX gives directions only: never a score.
 
+With `window_frames: null` the windows are whole tosses from their context (the val objective's rollouts);
+`truncation: N` then cuts the gradient's path through the state every N frames (sim/mjx.py: truncated).
+
 The parameters are searched in box coordinates: each is lo + (hi - lo) * sigmoid(u) (the stiffness in log space),
 so every step stays inside Table 2c's domain, and the search starts where NGOpt's does (the domain's centre,
 damping 50).
@@ -14,8 +17,6 @@ damping 50).
 
 from __future__ import annotations
 
-import contextlib
-import io
 import logging
 import time
 
@@ -29,18 +30,12 @@ from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
 from contactbench.recordings import Recordings, Split
 from contactbench.sim import engines
+from contactbench.sim.mjx import import_mjx, pose_loss, truncated
 from contactbench.sim.mujoco_scene import build_model, pack_state
 
 log = logging.getLogger(__name__)
 
 ADAM_BETAS = (0.9, 0.999)
-ANGLE_EPSILON = 1e-12  # inside eq. (1)'s angle's square root: its derivative is infinite at zero error
-
-
-def quiet_device_lines(record: logging.LogRecord) -> bool:
-    """MJX logs "Using JAX default device" on the root logger at every model it places or traces: noise in a run's
-    log."""
-    return not (record.name == "root" and str(record.msg).startswith("Using JAX default device"))
 
 
 def decayed(lr: float, step: int, steps: int) -> float:
@@ -93,16 +88,9 @@ class MjxWindows:
         window_frames: int | None,
         position_exponent: int,
         substeps: int = 1,
+        truncation: int | None = None,
     ):
-        import jax  # a heavy import that only this model needs
-
-        jax.config.update("jax_enable_x64", True)
-        with contextlib.redirect_stdout(io.StringIO()):  # mjx prints "Failed to import warp" (its GPU back-end)
-            from mujoco import mjx
-        from jax import numpy as jnp
-
-        logging.getLogger().addFilter(quiet_device_lines)
-
+        jax, jnp, mjx = import_mjx()
         self.jax, self.jnp = jax, jnp
         self.coordinates = BoxCoordinates(space)
         self.context_frames, self.window_frames, self.substeps = context_frames, window_frames, substeps
@@ -141,22 +129,17 @@ class MjxWindows:
         def rollout(model, qpos, qvel):
             data = mjx.make_data(model).replace(qpos=qpos, qvel=qvel)
 
-            def frame(data, _):
+            def frame(data, index):
+                data = truncated(jax, data, index, truncation)
                 data = jax.lax.fori_loop(0, substeps, lambda _, d: mjx.step(model, d), data)
                 return data, data.qpos
 
-            return jax.lax.scan(frame, data, None, length=horizon)[1]  # [W, 7K]
+            return jax.lax.scan(frame, data, jnp.arange(horizon))[1]  # [W, 7K]
 
         def loss(coordinates, qpos, qvel, truth, scored):
             model = simulated(coordinates)
             poses = jax.vmap(rollout, in_axes=(None, 0, 0))(model, qpos, qvel).reshape(truth.shape)
-            offset = poses[..., :3] - truth[..., :3]
-            positional = jnp.sum(offset * offset, axis=-1) @ (2.0 / widths) ** exponent
-            dot = jnp.sum(poses[..., 3:] * truth[..., 3:], axis=-1)
-            norms = jnp.sum(poses[..., 3:] ** 2, axis=-1) * jnp.sum(truth[..., 3:] ** 2, axis=-1)
-            angle = 2.0 * jnp.arctan2(jnp.sqrt(jnp.maximum(norms - dot * dot, 0.0) + ANGLE_EPSILON), jnp.abs(dot))
-            errors = jnp.where(scored, positional + jnp.sum(angle * angle, axis=-1), 0.0)
-            return jnp.mean(jnp.sum(errors, axis=-1) / jnp.sum(scored, axis=-1))  # every window counts once
+            return pose_loss(jnp, poses, truth, scored, widths, exponent)
 
         def value_and_gradient(coordinates, qpos, qvel, truth, scored):
             def twice(coordinates):  # the loss as jacfwd's aux too: one primal pass serves both
@@ -227,13 +210,15 @@ class GradientSysIDModule(IdentifiedModule):
         nthread: int | None = None,
         substeps: int = 1,
         engine: str = "mujoco",
+        truncation: int | None = None,
     ):
         if engine != "mujoco":
             raise ContactbenchError(f"model.module.engine is {engine!r} (expected mujoco: MJX is MuJoCo's port)")
         engines.require_flat(dataset.scene, "MJX")
         super().__init__(dataset, engine)
-        for name, value in (("steps", steps), ("windows", windows), ("window_frames", window_frames)):
-            if (value is not None or name != "window_frames") and (
+        checked = (("steps", steps), ("windows", windows), ("window_frames", window_frames), ("truncation", truncation))
+        for name, value in checked:
+            if (value is not None or name in ("steps", "windows")) and (
                 isinstance(value, bool) or not isinstance(value, int) or value < 1
             ):
                 raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
@@ -256,7 +241,13 @@ class AdamThroughMjx(pl.Callback):
     def on_fit_start(self, trainer, module: GradientSysIDModule) -> None:
         h = module.hparams
         self.windows = MjxWindows(
-            module.dataset, module.space, h.context_frames, h.window_frames, h.position_exponent, h.substeps
+            module.dataset,
+            module.space,
+            h.context_frames,
+            h.window_frames,
+            h.position_exponent,
+            h.substeps,
+            h.truncation,
         )
         if self.coordinates is None:
             self.coordinates = self.windows.coordinates.start.copy()
