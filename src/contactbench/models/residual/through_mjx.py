@@ -8,8 +8,9 @@ respect to the network's weights, through the contact solver and through the fea
 state (which the linearised adjoint leaves out). `tests/test_residual_mjx.py` holds the two versions equal.
 
 Reverse mode cannot pass MJX's solver `while_loop`; `scanned_solver` swaps it for MJX's own scan form with a fixed
-cap (`solver_iterations`, the smallest that matched C MuJoCo's rollouts: docs/DIFFERENTIABLE.md) while the loss is
-traced. The network trained here is the torch network the C-MuJoCo rollout uses: weights go in, gradients come out.
+cap (`solver_iterations`, 10: C MuJoCo's solver needs at most 9 iterations on these tosses, and MJX capped at 4
+is wrong; docs/DIFFERENTIABLE.md) while the loss is traced. The network trained here is the torch network the
+C-MuJoCo rollout uses: weights go in, gradients come out.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from contactbench.models.residual.correction import LOWEST_VERTICES, NEIGHBOUR_F
 from contactbench.recordings import Scene
 from contactbench.sim.mjx import import_mjx, pose_loss, scanned_solver, truncated
 from contactbench.sim.mujoco_scene import ContactParameters, build_model
+
+STANDARDISATION = ("feature_mean", "feature_std", "target_std")  # the module's buffers the network reads
 
 
 class JaxCorrection:
@@ -222,9 +225,7 @@ class MjxResidualWindows:
             poses = batched(weights, qpos, qvel, truth.shape[1])
             return pose_loss(jnp, poses, truth, scored, widths, position_exponent=2)
 
-        self._loss = jax.jit(loss)
         self._value_and_gradient = jax.jit(jax.value_and_grad(loss))
-        self._rollout = jax.jit(jax.vmap(rollout, in_axes=(None, 0, 0, None)), static_argnums=3)
 
     @staticmethod
     def weights(module) -> list:
@@ -242,15 +243,3 @@ class MjxResidualWindows:
         with scanned_solver(self.solver_iterations):
             value, gradient = self._value_and_gradient(weights, *map(self.jnp.asarray, (qpos, qvel, truth, scored)))
         return float(value), [tuple(np.array(part) for part in layer) for layer in gradient[1:]]
-
-    def value(self, weights, qpos, qvel, truth, scored) -> float:
-        with scanned_solver(self.solver_iterations):
-            return float(self._loss(weights, *map(self.jnp.asarray, (qpos, qvel, truth, scored))))
-
-    def rollout(self, weights, qpos, qvel, frames: int) -> np.ndarray:
-        """Poses [W, frames, K, 7] of the corrected MJX rollout from states [W, K, 7] / [W, K, 6]."""
-        with scanned_solver(self.solver_iterations):
-            return np.asarray(self._rollout(weights, self.jnp.asarray(qpos), self.jnp.asarray(qvel), frames))
-
-
-STANDARDISATION = ("feature_mean", "feature_std", "target_std")
