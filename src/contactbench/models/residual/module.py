@@ -48,7 +48,7 @@ from torch.utils.data import DataLoader
 
 from contactbench import rotations
 from contactbench.config import generations
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.kinematics import estimate_velocities
 from contactbench.models.base import ContactModel
 from contactbench.models.residual import correction
@@ -208,11 +208,8 @@ class ResidualModule(pl.LightningModule):
         super().__init__()
         if gradient not in GRADIENTS:
             raise ContactbenchError(f"model.module.gradient is {gradient!r} (expected one of {', '.join(GRADIENTS)})")
-        for name, value in (("solver_iterations", solver_iterations), ("truncation", truncation)):
-            if (value is not None or name != "truncation") and (
-                isinstance(value, bool) or not isinstance(value, int) or value < 1
-            ):
-                raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
+        counts = {"unroll": unroll, "solver_iterations": solver_iterations, "truncation": truncation}
+        require_positive_integers(counts, optional=("truncation",))
         # Plain values only: a checkpoint's hyperparameters must open with weights_only=True.
         sysid = {str(key): value for key, value in dict(sysid).items()}
         hidden = tuple(int(width) for width in hidden)

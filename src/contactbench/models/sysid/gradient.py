@@ -24,7 +24,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint, val_subset
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
@@ -216,12 +216,10 @@ class GradientSysIDModule(IdentifiedModule):
             raise ContactbenchError(f"model.module.engine is {engine!r} (expected mujoco: MJX is MuJoCo's port)")
         engines.require_flat(dataset.scene, "MJX")
         super().__init__(dataset, engine)
-        checked = (("steps", steps), ("windows", windows), ("window_frames", window_frames), ("truncation", truncation))
-        for name, value in checked:
-            if (value is not None or name in ("steps", "windows")) and (
-                isinstance(value, bool) or not isinstance(value, int) or value < 1
-            ):
-                raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
+        require_positive_integers(
+            {"steps": steps, "windows": windows, "window_frames": window_frames, "truncation": truncation},
+            optional=("window_frames", "truncation"),
+        )
         self.save_hyperparameters(ignore=["dataset"], logger=False)
 
 

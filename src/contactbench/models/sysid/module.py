@@ -15,7 +15,7 @@ import torch
 from nevergrad.optimization import recaster
 from torch.utils.data import DataLoader
 
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.analytical import EngineContactModel, MujocoContactModel
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import search_space
@@ -123,9 +123,7 @@ class SysIDModule(IdentifiedModule):
         engine: str = "mujoco",
     ):
         super().__init__(dataset, engine)
-        for name, value in (("evaluations", evaluations), ("restarts", restarts), ("num_workers", num_workers)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ContactbenchError(f"model.module.{name} is {value!r} (expected a positive integer)")
+        require_positive_integers({"evaluations": evaluations, "restarts": restarts, "num_workers": num_workers})
         self.save_hyperparameters(ignore=["dataset"], logger=False)  # the run logs curated params itself
 
     @property
