@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from contactbench.models.residual.module import ResidualModule, recorded_states, segment_starts
+from contactbench.models.residual.module import ResidualModule, recorded_windows, segment_starts
 from contactbench.models.residual.through_mjx import MjxResidualWindows
 from contactbench.recordings import read_recordings
 
@@ -86,13 +86,9 @@ def main() -> None:
     for length in args.lengths:
         gradients, losses, seconds = [], [], []
         for segments in drawn:
-            trajectory, first = segments[:, 0], segments[:, 1]
-            qpos, qvel = recorded_states(split, trajectory, first, dataset.dt)
-            frames = first[:, None] + 1 + np.arange(length)
-            lengths = split.lengths[trajectory][:, None]
-            truth = split.poses[trajectory[:, None], np.minimum(frames, lengths - 1)]
+            batch = recorded_windows(split, segments, length, dataset.dt)
             started = time.perf_counter()
-            loss, gradient = windows.value_and_gradient(weights, qpos, qvel, truth, frames < lengths)
+            loss, gradient = windows.value_and_gradient(weights, *batch)
             seconds.append(time.perf_counter() - started)
             gradients.append(flat(gradient))
             losses.append(loss)

@@ -13,7 +13,7 @@ from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.models.residual import correction
 from contactbench.models.residual.correction import Bodies
-from contactbench.models.residual.module import ResidualModule, recorded_states
+from contactbench.models.residual.module import ResidualModule, recorded_windows
 from contactbench.models.residual.through_mjx import JaxCorrection, MjxResidualWindows
 from contactbench.recordings import read_recordings
 from contactbench.sim.mjx import import_mjx
@@ -102,10 +102,8 @@ def test_the_modules_gradient_is_reverse_mode_through_mjx_and_the_window_losss_s
     bias_gradient = module.network[-1].bias.grad.numpy().astype(float)
     assert np.isfinite(loss.item()) and np.abs(bias_gradient).max() > 0
 
-    split = dataset.split("train")
-    qpos, qvel = recorded_states(split, np.arange(8), np.arange(8) * 5, dataset.dt)
-    frames = np.arange(8)[:, None] * 5 + 1 + np.arange(3)
-    truth, scored = split.poses[np.arange(8)[:, None], frames], np.ones(frames.shape, dtype=bool)
+    windows = recorded_windows(dataset.split("train"), segments.numpy(), 3, dataset.dt)
+    assert windows[3].all()  # every frame of these windows is recorded
     weights = MjxResidualWindows.weights(module)
     step = 1e-5
     for index in range(6):
@@ -114,7 +112,7 @@ def test_the_modules_gradient_is_reverse_mode_through_mjx_and_the_window_losss_s
             bias = weights[-1][1].copy()
             bias[index] += sign * step
             moved = [*weights[:-1], (weights[-1][0], bias)]
-            shifted.append(module._mjx_windows.value_and_gradient(moved, qpos, qvel, truth, scored)[0])
+            shifted.append(module._mjx_windows.value_and_gradient(moved, *windows)[0])
         slope = (shifted[0] - shifted[1]) / (2 * step)
         assert bias_gradient[index] == pytest.approx(slope, rel=1e-3, abs=1e-6 * loss.item())
 

@@ -128,6 +128,20 @@ def recorded_states(
     return qpos, body_frame_velocities(qpos, velocities[trajectory, frame])
 
 
+def recorded_windows(
+    split: Split, segments: np.ndarray, unroll: int, dt: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Windows [(trajectory, first frame)] of a split as MuJoCo states at their first frame (qpos [M, K, 7], qvel
+    [M, K, 6]), the recorded poses of the `unroll` frames after it [M, unroll, K, 7] (past a toss's end, its last
+    frame) and which of those frames the toss has [M, unroll]."""
+    trajectory, first = segments[:, 0], segments[:, 1]
+    qpos, qvel = recorded_states(split, trajectory, first, dt)
+    frames = first[:, None] + 1 + np.arange(unroll)
+    lengths = split.lengths[trajectory][:, None]
+    truth = split.poses[trajectory[:, None], np.minimum(frames, lengths - 1)]
+    return qpos, qvel, truth, frames < lengths
+
+
 def transitions(
     split: Split, bodies: Bodies, simulator: MujocoRollouts, parameters: ContactParameters
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -321,9 +335,9 @@ class ResidualModule(pl.LightningModule):
         a velocity change moves the state (x += dt u, v += u). The network's inputs are taken as given (their own
         dependence on the state is left out of the gradient). Returns a surrogate whose value is the loss and whose
         gradient is that estimate."""
-        recorded = self.dataset.split(split)
-        trajectory, first = segments[:, 0].cpu().numpy(), segments[:, 1].cpu().numpy()
-        qpos, qvel = recorded_states(recorded, trajectory, first, self.bodies.dt)
+        qpos, qvel, truth, present = recorded_windows(
+            self.dataset.split(split), segments.cpu().numpy(), self.hparams.unroll, self.bodies.dt
+        )
         n, n_bodies = qpos.shape[:2]
         nv = 6 * n_bodies
         dt = self.bodies.dt
@@ -350,9 +364,8 @@ class ResidualModule(pl.LightningModule):
                 effect[:, 6 * k + 3 : 6 * k + 6, 6 * k + 3 : 6 * k + 6] = dt * np.eye(3) * scale
                 effect[:, nv + 6 * k : nv + 6 * k + 3, 6 * k : 6 * k + 3] = orientation[:, k] * scale
                 effect[:, nv + 6 * k + 3 : nv + 6 * k + 6, 6 * k + 3 : 6 * k + 6] = np.eye(3) * scale
-            frame = first + step + 1
-            counted = (~diverged & (frame < recorded.lengths[trajectory])).astype(float)
-            target = recorded.poses[trajectory, np.minimum(frame, recorded.lengths[trajectory] - 1)]
+            counted = (~diverged & present[:, step]).astype(float)
+            target = truth[:, step]
             position_error = (qpos[..., :3] - target[..., :3]) / half_widths[:, None]
             rotation_error = rotations.to_rotation_vector(
                 rotations.multiply(qpos[..., 3:], rotations.conjugate(rotations.normalize(target[..., 3:])))
@@ -403,11 +416,7 @@ class ResidualModule(pl.LightningModule):
         (through_mjx.py): a surrogate whose value is the loss and whose gradient is MJX's. A window batch whose
         loss or gradient is not finite contributes nothing (logged as `train/skipped_batches`)."""
         recorded = self.dataset.split(split)
-        trajectory, first = segments[:, 0].cpu().numpy(), segments[:, 1].cpu().numpy()
-        qpos, qvel = recorded_states(recorded, trajectory, first, self.bodies.dt)
-        frames = first[:, None] + 1 + np.arange(self.hparams.unroll)
-        lengths = recorded.lengths[trajectory][:, None]
-        truth = recorded.poses[trajectory[:, None], np.minimum(frames, lengths - 1)]
+        windows = recorded_windows(recorded, segments.cpu().numpy(), self.hparams.unroll, self.bodies.dt)
         if self._mjx_windows is None:
             h = self.hparams
             self._mjx_windows = MjxResidualWindows(
@@ -419,9 +428,7 @@ class ResidualModule(pl.LightningModule):
                 h.substeps,
                 h.truncation,
             )
-        value, gradient = self._mjx_windows.value_and_gradient(
-            MjxResidualWindows.weights(self), qpos, qvel, truth, frames < lengths
-        )
+        value, gradient = self._mjx_windows.value_and_gradient(MjxResidualWindows.weights(self), *windows)
         layers = [layer for layer in self.network if isinstance(layer, nn.Linear)]
         finite = np.isfinite(value) and all(np.isfinite(part).all() for pair in gradient for part in pair)
         self.skipped_batches += 0 if finite else 1
@@ -432,6 +439,7 @@ class ResidualModule(pl.LightningModule):
         return surrogate - surrogate.detach() + (value if finite else 0.0)
 
     def window_loss(self, split: str, segments: torch.Tensor) -> torch.Tensor:
+        # Through MJX, val windows take the gradient too (discarded): one jit-compiled function, not two compiles.
         if self.hparams.gradient == "mjx":
             return self.rollout_loss_through_mjx(split, segments)
         return self.rollout_loss(split, segments)

@@ -196,7 +196,7 @@ class MjxResidualWindows:
         truncation: int | None = None,
     ):
         jax, jnp, mjx = import_mjx()
-        self.jax, self.jnp = jax, jnp
+        self.jnp = jnp
         self.solver_iterations = solver_iterations
         model = build_model(dataset, parameters, substeps)
         model.opt.iterations = solver_iterations
