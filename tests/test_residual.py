@@ -53,6 +53,18 @@ def test_the_target_correction_puts_a_step_on_the_recorded_next_pose(real_cube):
     assert before > 0.01 and after < before / 10  # first order in dt: exp(a) exp(b) ~ exp(a + b)
 
 
+def test_only_the_step_change_columns_describe_mujocos_step(real_cube):
+    bodies = Bodies.of(real_cube)
+    qpos0, qvel0, qpos1, qvel1 = step_from_recorded(real_cube, 20)
+    stepped = correction.features(bodies, qpos0, qvel0, qpos1, qvel1)
+    unstepped = correction.features(bodies, qpos0, qvel0, qpos0, qvel0)
+    assert np.all(unstepped[..., correction.STEP_CHANGE] == 0)
+    assert np.abs(stepped[..., correction.STEP_CHANGE]).max() > 1e-3
+    others = np.ones(bodies.n_features, dtype=bool)
+    others[correction.STEP_CHANGE] = False
+    np.testing.assert_array_equal(stepped[..., others], unstepped[..., others])
+
+
 def sliding_cube(bodies: Bodies, speed: float = 1.0):
     """A cube flat on the floor sliding along x, before and after a MuJoCo step."""
     half = bodies.vertices[0][:, 2].max()

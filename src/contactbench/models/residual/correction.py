@@ -30,6 +30,7 @@ from contactbench.sim.rollout import kinetic_energies
 LOWEST_VERTICES = 4  # the body's vertices nearest the floor that the features describe (a tetrahedron has four)
 NEIGHBOUR_FEATURES = 7  # relative position and velocity of the nearest other body (body frame), and its distance
 Predictor = Callable[[np.ndarray], np.ndarray]  # features [M, F] -> body-frame velocity corrections [M, 6]
+STEP_CHANGE = slice(10, 16)  # the columns of `features` that describe MuJoCo's step (the rest: the state before it)
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,7 @@ def _to_body(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return rotations.rotate(rotations.conjugate(q), v)
 
 
-def _vertical_velocities(qpos: np.ndarray, qvel: np.ndarray, offset_world: np.ndarray) -> np.ndarray:
+def vertical_velocities(qpos: np.ndarray, qvel: np.ndarray, offset_world: np.ndarray) -> np.ndarray:
     """World vertical velocity [..., M, V] of points at world offsets [..., V, 3] from the body origin, for M body
     velocities qvel [..., M, 6] at once (one rotation for all of them; only the z of v + w x r is ever used)."""
     omega = rotations.rotate(qpos[..., None, 3:], qvel[..., 3:])  # [..., M, 3]
@@ -111,7 +112,7 @@ def _lowest_vertices(bodies: Bodies, qpos: np.ndarray, qvel: np.ndarray) -> np.n
         placed = world_vertices(qpos[..., k, :], vertices)  # [..., V, 3]
         order = np.argsort(placed[..., 2], axis=-1)[..., :LOWEST_VERTICES]
         lowest = np.take_along_axis(placed, order[..., None], axis=-2)
-        vertical = _vertical_velocities(qpos[..., k, :], qvel[..., k, None, :], lowest - qpos[..., k, None, :3])
+        vertical = vertical_velocities(qpos[..., k, :], qvel[..., k, None, :], lowest - qpos[..., k, None, :3])
         out.append(
             np.concatenate(
                 [lowest[..., 2] - bodies.floor_z, vertical[..., 0, :], vertices[order].reshape(*order.shape[:-1], -1)],
@@ -171,7 +172,7 @@ def allowed_fraction(
         offset = placed - qpos1[..., k, None, :3]
         near = placed[..., 2] - bodies.floor_z < contact_margin
         velocities = np.stack(np.broadcast_arrays(qvel1[..., k, :], change[..., k, :]), axis=-2)
-        vertical = _vertical_velocities(qpos1[..., k, :], velocities, offset)
+        vertical = vertical_velocities(qpos1[..., k, :], velocities, offset)
         rising, pushed = vertical[..., 0, :], vertical[..., 1, :]
         # rising + f * pushed >= min(rising, 0): at rest or sinking, no push down; rising, at most to a stop.
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -20,7 +20,8 @@ worse from the first epoch (0.254 -> 0.41) with the train loss rising (the linea
 differences of the loss on the linear outputs only, and those differences change sign with the step: contact makes
 the rollout loss non-smooth); evolution strategies on whole train rollouts (806-parameter gated MLP, 16 antithetic
 members, 64 tosses a generation, 80 generations) 0.234-0.256, never clearly below MuJoCo alone; a per-step angular
-damping in contact, 0.2392 / 0.3875 at its best.
+damping in contact, 0.2392 / 0.3875 at its best. A learned impact map in place of MuJoCo's impulse at impact frames
+(benchmarks/residual_impact_map.py, 24 variants on two splits): none below MuJoCo alone on val position.
 
 `gradient: mjx` replaces the linearised adjoint by reverse mode through MJX (through_mjx.py): exact, the features'
 own dependence on the state included, over windows up to whole tosses (`unroll`), optionally cut every `truncation`
