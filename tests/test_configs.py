@@ -148,4 +148,5 @@ def test_a_tuned_setting_applies_to_its_model_and_dataset_only_and_evaluate_find
     assert compose("train", overrides=[search, "model=gnn_paper", "dataset=contactnets_cube"]).model.module.lr != 5.0e-4
     evaluate = compose("evaluate", overrides=[search, "model=gnn", "dataset=contactnets_cube"])
     assert signature_key(train) == signature_key(evaluate)  # evaluate.py finds what train.py fitted
-    assert list(compose("train", overrides=["model=gnn"]).model.choose_on_val.module.noise_std) == [1.0e-4, 2.0e-4]
+    noise_grid = compose("train", overrides=["model=gnn"]).model.choose_on_val.module.noise_std
+    assert list(noise_grid) == [1.0e-4, 2.0e-4, 4.0e-4]
