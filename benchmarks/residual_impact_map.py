@@ -8,7 +8,7 @@ of MuJoCo's step, so MuJoCo's own impulse is replaced, not corrected: the networ
 the residual's correction (no vertex near the floor driven down, no kinetic energy gained); every other frame is
 identified MuJoCo's. The map is regressed on the train split's impact frames (recorded state before, recorded pose
 after), stopped on the val split's, and scored by rolling the whole val split out from the shared protocol's
-context, beside MuJoCo alone. `--inputs state+step` lets the network see MuJoCo's step as well (a correction of it).
+context, beside MuJoCo alone. The `state+step` rows let the network see MuJoCo's step as well (a correction of it).
 
     python train.py model=sysid dataset=contactnets_cube budget=quick        # the identified MuJoCo it builds on
     python benchmarks/residual_impact_map.py --fitted outputs/train/sysid/contactnets_cube/real/budget=quick,seed=0
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,7 @@ from contactbench.config import REPO_ROOT
 from contactbench.kinematics import world_vertices
 from contactbench.models.residual import correction
 from contactbench.models.residual.correction import Bodies
-from contactbench.models.residual.module import ResidualContactModel, recorded_states
+from contactbench.models.residual.module import ResidualContactModel, transitions
 from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.recordings import read_recordings
@@ -68,22 +69,6 @@ class ImpactMap(ResidualContactModel):
         inputs = correction.features(bodies, qpos, qvel, qpos1, qvel1).reshape(n * n_bodies, -1)
         change = np.nan_to_num(self.predict(inputs)).reshape(n, n_bodies, 6) * hit[..., None]
         return correction.corrected(bodies, qpos, qvel, qpos1, qvel1, change, self.contact_margin)
-
-
-def impact_samples(dataset, split_name, bodies, simulator, parameters, min_speed):
-    """Step features [M, F] and the velocity changes [M, 6] that put MuJoCo's step on the recorded next pose, at
-    every impacting body of a split's recorded frames (from the second: velocities are backward differences)."""
-    split = dataset.split(split_name)
-    trajectory, frame = np.nonzero(np.arange(split.poses.shape[1] - 1)[None, :] < split.lengths[:, None] - 1)
-    trajectory, frame = trajectory[frame >= 1], frame[frame >= 1]
-    qpos0, qvel0 = recorded_states(split, trajectory, frame, bodies.dt)
-    m, n_bodies = qpos0.shape[:2]
-    qpos1, qvel1, diverged = simulator.step(parameters, qpos0.reshape(m, -1), qvel0.reshape(m, -1))
-    qpos1, qvel1 = qpos1.reshape(m, n_bodies, 7), qvel1.reshape(m, n_bodies, 6)
-    hit = impacting(bodies, qpos0, qvel0, min_speed) & ~diverged[:, None]
-    inputs = correction.features(bodies, qpos0, qvel0, qpos1, qvel1)
-    wanted = correction.targets(qpos0, qpos1, qvel1, split.poses[trajectory, frame + 1], bodies.dt)
-    return inputs[hit], wanted[hit], float(hit.mean())
 
 
 def fit_map(train, val, columns, angular_only: bool, seed: int, steps: int = 3000):
@@ -144,10 +129,14 @@ def main() -> None:
     print(f"val rollouts, MuJoCo alone: position {alone['pos_err']:.4f} widths, rotation {alone['rot_err']:.4f} rad")
     state_columns = np.setdiff1d(np.arange(bodies.n_features), np.arange(bodies.n_features)[correction.STEP_CHANGE])
     print("min speed | inputs | output | impacting (train) | one-step val loss (no change) | val pos | val rot | s")
+    train_bodies = len(transitions(dataset.split("train"), bodies, simulator, parameters)[0])
     for min_speed in args.min_speed:
         started = time.perf_counter()
-        *train, share = impact_samples(dataset, "train", bodies, simulator, parameters, min_speed)
-        *val, _ = impact_samples(dataset, "val", bodies, simulator, parameters, min_speed)
+        impacts = partial(impacting, bodies, min_speed=min_speed)
+        train, val = (
+            transitions(dataset.split(name), bodies, simulator, parameters, impacts) for name in ("train", "val")
+        )
+        share = len(train[0]) / train_bodies
         for inputs, columns in (("state", state_columns), ("state+step", np.arange(bodies.n_features))):
             for output, angular_only in (("all", False), ("angular", True)):
                 predict, one_step, unchanged = fit_map(train, val, columns, angular_only, args.seed)

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import mujoco
 import numpy as np
@@ -144,20 +144,27 @@ def recorded_windows(
 
 
 def transitions(
-    split: Split, bodies: Bodies, simulator: MujocoRollouts, parameters: ContactParameters
+    split: Split,
+    bodies: Bodies,
+    simulator: MujocoRollouts,
+    parameters: ContactParameters,
+    selected: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Features [M K, F] and one-step correction targets [M K, 6] of every transition t -> t + 1 of a split (M of
-    them), from the recorded states: what MuJoCo gets wrong per step, for the scale of inputs and outputs."""
+    """Features [N, F] and one-step correction targets [N, 6] of every body in every transition t -> t + 1 of a split,
+    from the recorded states: what MuJoCo gets wrong per step, for the scale of inputs and outputs. `selected` keeps
+    some bodies only: from the recorded states before the step (qpos [M, K, 7], qvel [M, K, 6]) to a mask [M, K]."""
     trajectory, frame = np.nonzero(np.arange(split.poses.shape[1] - 1)[None, :] < split.lengths[:, None] - 1)
     qpos0, qvel0 = recorded_states(split, trajectory, frame, bodies.dt)
     m, n_bodies = qpos0.shape[:2]
     qpos1, qvel1, diverged = simulator.step(parameters, qpos0.reshape(m, -1), qvel0.reshape(m, -1))
     qpos1, qvel1 = qpos1.reshape(m, n_bodies, 7), qvel1.reshape(m, n_bodies, 6)
     keep = ~diverged
-    inputs = correction.features(bodies, qpos0[keep], qvel0[keep], qpos1[keep], qvel1[keep])
+    qpos0, qvel0, qpos1, qvel1 = qpos0[keep], qvel0[keep], qpos1[keep], qvel1[keep]
+    chosen = np.ones(qpos0.shape[:2], dtype=bool) if selected is None else selected(qpos0, qvel0)
+    inputs = correction.features(bodies, qpos0, qvel0, qpos1, qvel1)
     recorded_next = split.poses[trajectory, frame + 1][keep]
-    wanted = correction.targets(qpos0[keep], qpos1[keep], qvel1[keep], recorded_next, bodies.dt)
-    return inputs.reshape(-1, bodies.n_features), wanted.reshape(-1, 6)
+    wanted = correction.targets(qpos0, qpos1, qvel1, recorded_next, bodies.dt)
+    return inputs[chosen], wanted[chosen]
 
 
 def segment_starts(split: Split) -> np.ndarray:
