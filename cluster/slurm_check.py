@@ -341,7 +341,18 @@ def check(cluster: Cluster, extra: list[str]) -> None:
     say(f"sweep finished: train.py -m exited 0 after its {len(jobs)} Slurm jobs")
 
     job, folder, checkpoint = killed.job, killed.folder, killed.checkpoint
-    show = cluster.slurm("scontrol", "show", "job", job)
+
+    def finished_show() -> str | None:
+        # submitit reads the job's result file as soon as it is written; Slurm marks the job COMPLETED only after
+        # the process has exited and the epilog ran, a moment later on a loaded node
+        show = cluster.slurm("scontrol", "show", "job", job)
+        state = re.search(r"\bJobState=(\S+)", show)
+        return None if state and state.group(1) in ("RUNNING", "COMPLETING") else show
+
+    try:
+        show = wait_for(finished_show, timeout=120, what=f"job {job} to leave RUNNING", interval=1)
+    except CheckFailed:
+        show = cluster.slurm("scontrol", "show", "job", job)
     restarts = re.search(r"\bRestarts=(\d+)", show)
     state = re.search(r"\bJobState=(\S+)", show)
     if not restarts or int(restarts.group(1)) != 1 or not state or state.group(1) != "COMPLETED":
