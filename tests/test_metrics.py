@@ -284,6 +284,18 @@ def test_summary_is_the_mean_of_trajectory_means_and_frames_past_the_length_are_
     np.testing.assert_array_equal(result.per_trajectory["length"], [6, 12])
 
 
+def test_the_recordings_own_floor_penetration_is_scored_beside_the_predictions():
+    true, pred, lengths = _two_tosses()
+    true[1, 2:, 0, 2] = WIDTH / 2 - 0.004  # the recorded cube sits 4 mm inside the floor, the prediction on it
+    pred[1, :, 0, 2] = WIDTH / 2
+    result = metrics.compute_metrics(true, pred, lengths, 2, [CUBE], floor_z=0.0)
+    np.testing.assert_allclose(result.per_trajectory["floor_penetration_true_m"], [0.0, 0.004])
+    assert result.summary["floor_penetration_true_m"] == pytest.approx(0.002)
+    assert result.summary["floor_penetration_m"] == pytest.approx(0.0)
+    itself = metrics.compute_metrics(true, true, lengths, 2, [CUBE], floor_z=0.0)
+    assert itself.summary["floor_penetration_m"] == itself.summary["floor_penetration_true_m"]
+
+
 def test_non_finite_prediction_inside_the_scored_frames_is_not_dropped():
     true, pred, lengths = _two_tosses()
     pred[1, 7, 0, 0] = np.nan

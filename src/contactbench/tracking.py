@@ -69,6 +69,7 @@ SCORES = (
     "pos_err",
     "rot_err_rad",
     "floor_penetration_m",
+    "floor_penetration_true_m",
     "min_vertex_height_m",
     "interbody_penetration_m",
     "pairwise_collisions",

@@ -112,7 +112,7 @@ def write_score(score: Score, out_dir: Path) -> dict:
         _csv_text({"trajectory": np.arange(score.header["n_trajectories"]), **score.metrics.per_trajectory}),
     )
     log.info(
-        "%s on %s/%s %s (%d trajectories): pos_err %.4f  rot_err %.4f rad  floor penetration %.2e m",
+        "%s on %s/%s %s (%d trajectories): pos_err %.4f  rot_err %.4f rad  floor penetration %.2e m (recorded %.2e m)",
         score.header["model"],
         score.header["dataset"],
         score.header["variant"],
@@ -121,5 +121,6 @@ def write_score(score: Score, out_dir: Path) -> dict:
         score.metrics.summary["pos_err"],
         score.metrics.summary["rot_err_rad"],
         score.metrics.summary["floor_penetration_m"],
+        score.metrics.summary["floor_penetration_true_m"],
     )
     return document
