@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 import pybullet
 
-from contactbench import rotations
+from contactbench import metrics, rotations
 from contactbench.generation.bullet import BulletScene
 from contactbench.generation.scenes import BulletSettings, SceneSpec
 from contactbench.generation.solids import solid
+from contactbench.ground import Ground
 from contactbench.recordings import read_recordings
 
 SPEED_BINS = (0.0, 0.02, 0.1, 0.3, 0.6, 1.0, 2.0)  # m/s, horizontal
@@ -35,10 +36,8 @@ def recorded_sink(root: Path) -> list[tuple[str, float, float, int]]:
     """(bin, mean depth mm, 95th percentile mm, frames) per horizontal-speed bin of the train split's flat frames."""
     recordings = read_recordings(root, splits=["train"])
     split = recordings.split("train")
-    mesh = recordings.body_mesh(0)
-    poses = split.poses[:, :, 0]
-    matrices = rotations.to_matrix(poses[..., 3:])
-    lowest = (np.einsum("ntij,vj->ntvi", matrices, mesh.vertices)[..., 2].min(-1) + poses[..., 2]) - recordings.floor_z
+    lowest = metrics.ground_clearance(split.poses, [recordings.body_mesh(0)], Ground.of(recordings))[..., 0]
+    matrices = rotations.to_matrix(split.poses[:, :, 0, 3:])
     speed = np.linalg.norm(split.velocities[:, :, 0, :2], axis=-1)
     vertical = np.abs(split.velocities[:, :, 0, 2])
     up = matrices[..., :, 2]  # every body axis's z component: a flat cube has one at ±1

@@ -23,9 +23,9 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
-from contactbench import restore, rotations
+from contactbench import metrics, restore, rotations
 from contactbench.config import CONFIG_DIR
-from contactbench.metrics import compute_metrics
+from contactbench.ground import Ground
 from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 
@@ -34,16 +34,6 @@ AT_REST = 0.01  # m/s
 SLIDING = (0.1, 0.3)  # m/s
 FLAT = np.cos(np.radians(2.0))
 LATER = 60  # frames
-
-
-def lowest_clearance(simulator, poses: np.ndarray) -> np.ndarray:
-    """The lowest vertex's distance to the ground [..., K] of poses [..., K, 7]."""
-    with torch.no_grad():
-        clearance = simulator.clearance(simulator.vertices(torch.as_tensor(poses)))
-        shape = (*clearance.shape[:-1], simulator.scene.n_bodies)
-        index = simulator.node_body.expand_as(clearance)
-        lowest = torch.full(shape, torch.inf, dtype=clearance.dtype).scatter_reduce(-1, index, clearance, "amin")
-    return lowest.numpy()
 
 
 def final_speed(poses: np.ndarray, dt: float) -> np.ndarray:
@@ -78,21 +68,23 @@ def main() -> None:
     if recordings.n_bodies != 1:
         raise SystemExit(f"{arguments.data}: {recordings.n_bodies} bodies; this benchmark reads single-body data")
     train, val = recordings.split("train"), recordings.split("val")
-    meshes = [recordings.body_mesh(0)]
+    meshes, ground = [recordings.body_mesh(0)], Ground.of(recordings)
     starts = sliding_starts(val)
+    frames = np.arange(train.n_frames)[None, :] < train.lengths[:, None]
+    deepest = -metrics.ground_clearance(train.poses, meshes, ground)[frames].min()
     for run in arguments.runs:
         checkpoint = run / "checkpoints" / json.loads((run / "fitted.json").read_text())["checkpoint"]
         module = restore.load_module(cfg, recordings.for_models(), checkpoint)
         simulator, model = module.simulator, module.to_contact_model()
-        frames = np.arange(train.n_frames)[None, :] < train.lengths[:, None]
-        deepest = -lowest_clearance(simulator, train.poses)[frames].min()
 
         predicted = model.rollout(recordings.scene, make_context(val, recordings.dt, CONTEXT_FRAMES))
         recorded = val.poses[:, : predicted.shape[1]]
-        scores = compute_metrics(recorded, predicted, val.lengths, CONTEXT_FRAMES, meshes, recordings.floor_z)
+        scores = metrics.compute_metrics(
+            recorded, predicted, val.lengths, CONTEXT_FRAMES, meshes, recordings.floor_z, ground=ground
+        )
         resting = final_speed(recorded, recordings.dt) < AT_REST
         speed = final_speed(predicted, recordings.dt)
-        fell = -lowest_clearance(simulator, predicted[:, -1])[:, 0] > deepest
+        fell = -metrics.ground_clearance(predicted[:, -1], meshes, ground)[:, 0] > deepest
 
         history = simulator.velocity_history + 1
         context = np.stack([val.poses[toss, frame - history + 1 : frame + 1] for toss, frame in starts])

@@ -349,10 +349,7 @@ def check(cluster: Cluster, extra: list[str]) -> None:
         state = re.search(r"\bJobState=(\S+)", show)
         return None if state and state.group(1) in ("RUNNING", "COMPLETING") else show
 
-    try:
-        show = wait_for(finished_show, timeout=120, what=f"job {job} to leave RUNNING", interval=1)
-    except CheckFailed:
-        show = cluster.slurm("scontrol", "show", "job", job)
+    show = wait_for(finished_show, timeout=120, what=f"job {job} to leave RUNNING", interval=1)
     restarts = re.search(r"\bRestarts=(\d+)", show)
     state = re.search(r"\bJobState=(\S+)", show)
     if not restarts or int(restarts.group(1)) != 1 or not state or state.group(1) != "COMPLETED":
