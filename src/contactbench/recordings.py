@@ -16,7 +16,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
-from contactbench import atomic
+from contactbench import atomic, rotations
 from contactbench.errors import ContactbenchError
 from contactbench.meshes import Mesh, MeshError, convexity_problem, obj_text, read_obj
 
@@ -26,6 +26,10 @@ SCENE_VERSION = 2  # adds convex pieces of non-convex bodies, static geometry an
 VERSIONS = (VERSION, SCENE_VERSION)
 MAX_COORDINATE = 1000.0  # m: static geometry farther out than this is a unit or sign mistake, not a scene
 QUATERNION_TOLERANCE = 1e-3
+# A hinge's two anchors may sit this far apart in a recorded frame (m), and its two axes this far out of line (rad):
+# tracking noise, and an engine's joint drift, stay well inside; a mislabelled anchor or body does not.
+HINGE_GAP_TOLERANCE = 5e-3
+HINGE_AXIS_TOLERANCE = 0.05
 ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a zip's first entry, or an empty zip
 
 
@@ -113,6 +117,7 @@ class Joint:
     axis: np.ndarray  # [3] unit, the same in both mesh frames
     damping: float  # N m s / rad: torque against the joint's angular rate
     range: tuple[float, float] | None  # rad, the angles the joint stops at; None: it turns freely
+    friction: float = 0.0  # N m: Coulomb torque against the joint's turning (dry friction in the axle)
 
 
 @dataclass
@@ -186,6 +191,9 @@ class Scene:
     meta: dict  # meta.json as read; unknown keys are kept and written back
     meshes: dict[str, Mesh]  # by the mesh path used in meta.bodies
     root: Path | None = None
+    # Multiplies every body's inertia tensor: a candidate of identification (sim/articulation.py), never read from or
+    # written to a file.
+    inertia_scale: float = 1.0
 
     @property
     def name(self) -> str:
@@ -272,6 +280,7 @@ class Scene:
                 axis=unit(entry["axis"]),
                 damping=float(entry.get("damping", 0.0)),
                 range=tuple(float(x) for x in entry["range"]) if "range" in entry else None,
+                friction=float(entry.get("friction", 0.0)),
             )
             for entry in self.meta.get("joints", [])
         ]
@@ -300,7 +309,7 @@ class Scene:
         com, inertia = self.body_mesh(k).mass_properties(body.mass)
         if body.inertia_diagonal is not None:
             inertia = np.diag(body.inertia_diagonal)
-        return com, inertia
+        return com, self.inertia_scale * inertia
 
 
 @dataclass
@@ -312,7 +321,7 @@ class Recordings(Scene):
     @property
     def scene(self) -> Scene:
         """The scene alone, without meta.generator (the hidden simulation parameters): what a rollout may see."""
-        return Scene(meta=self._meta_for_models(), meshes=self.meshes, root=self.root)
+        return Scene(meta=self._meta_for_models(), meshes=self.meshes, root=self.root, inertia_scale=self.inertia_scale)
 
     def split(self, name: str) -> Split:
         if name not in self.splits:
@@ -489,10 +498,11 @@ def _validate_scene_fields(meta: dict, where: str) -> None:
             low, high = _vector(joint, "range", 2, joint_where)
             if not low < high:
                 raise _fail(joint_where, f"field 'range' is {joint['range']!r} (expected lowest < highest, in rad)")
-        if "damping" in joint:
-            damping = _require(joint, "damping", (int, float), joint_where, "N m s/rad, >= 0")
-            if not (np.isfinite(damping) and damping >= 0):
-                raise _fail(joint_where, f"field 'damping' is {damping!r} (expected N m s/rad, >= 0)")
+        for key, unit in (("damping", "N m s/rad"), ("friction", "N m")):
+            if key in joint:
+                value = _require(joint, key, (int, float), joint_where, f"{unit}, >= 0")
+                if not (np.isfinite(value) and value >= 0):
+                    raise _fail(joint_where, f"field '{key}' is {value!r} (expected {unit}, >= 0)")
     parent_of = {joint["child"]: joint["parent"] for joint in joints}
     for name in parent_of:
         seen = {name}
@@ -563,6 +573,40 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
                 "with 6 components)",
             )
         _check_finite(velocities, valid, "velocities", where)
+
+
+def validate_hinges(scene: Scene, split: Split, where: str) -> None:
+    """Every valid frame keeps each hinge: its anchors coincide and its axes line up, within the tolerances above."""
+    valid = split.valid_mask()
+    for j, joint in enumerate(scene.joints):
+        parent = split.poses[:, :, joint.parent]
+        child = split.poses[:, :, joint.child]
+        with np.errstate(invalid="ignore"):
+            gap = np.linalg.norm(
+                parent[..., :3]
+                + rotations.rotate(parent[..., 3:], np.broadcast_to(joint.parent_anchor, parent.shape[:-1] + (3,)))
+                - child[..., :3]
+                - rotations.rotate(child[..., 3:], np.broadcast_to(joint.child_anchor, child.shape[:-1] + (3,))),
+                axis=-1,
+            )
+            axes = [
+                rotations.rotate(pose[..., 3:], np.broadcast_to(joint.axis, pose.shape[:-1] + (3,)))
+                for pose in (parent, child)
+            ]
+            tilt = np.arccos(np.clip(np.einsum("...i,...i->...", *axes), -1.0, 1.0))
+        for values, tolerance, what in (
+            (gap, HINGE_GAP_TOLERANCE, "m between its anchors"),
+            (tilt, HINGE_AXIS_TOLERANCE, "rad between its axes"),
+        ):
+            bad = valid & ~(values <= tolerance)
+            if bad.any():
+                n, t = np.argwhere(bad)[0]
+                raise _fail(
+                    where,
+                    f"field 'poses': trajectory {n}, frame {t}: hinge joints[{j}] ({joint.name!r}) has "
+                    f"{values[n, t]:.4g} {what} (expected at most {tolerance}; meta.json's parent_anchor, "
+                    "child_anchor and axis say where the two bodies meet)",
+                )
 
 
 def _check_finite(array: np.ndarray, valid: np.ndarray, name: str, where: str) -> None:
@@ -781,7 +825,10 @@ def read_recordings(root: str | os.PathLike, splits: Iterable[str] | None = None
     loaded = {
         name: read_split(_inside(root, meta["splits"][name], f"splits.{name}"), len(meta["bodies"])) for name in wanted
     }
-    return Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
+    recordings = Recordings(meta=meta, meshes=meshes, splits=loaded, root=root)
+    for name, split in loaded.items():
+        validate_hinges(recordings, split, str(root / meta["splits"][name]))
+    return recordings
 
 
 def _mesh_fields(meta: Mapping) -> list[tuple[str, str]]:
@@ -857,8 +904,18 @@ def _inside(root: Path, relative: str, field: str) -> Path:
 # ---------------------------------------------------------------- writing
 
 
-def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
-    """Validate, then write the whole dataset into a staging folder and swap it into place."""
+def _inside_path_checked(name: str) -> str:
+    """An extra file's name, refused if it would leave the dataset folder."""
+    if Path(name).is_absolute() or ".." in Path(name).parts:
+        raise RecordingsError(f"extra file {name!r}: expected a path inside the dataset folder")
+    return name
+
+
+def write_recordings(
+    root: str | os.PathLike, recordings: Recordings, extra_files: Mapping[str, str] | None = None
+) -> Path:
+    """Validate, then write the whole dataset into a staging folder and swap it into place; `extra_files` ({name:
+    text}, e.g. a LICENSE) go into the same folder in the same swap."""
     root = Path(root)
     meta = copy.deepcopy(recordings.meta)
     validate_meta(meta, f"{root / 'meta.json'} (being written)")
@@ -870,6 +927,7 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
         if name not in meta["splits"]:
             raise RecordingsError(f"{root / 'meta.json'} (being written): split {name!r} not listed in 'splits'")
         validate_split(split, len(meta["bodies"]), f"{root / meta['splits'][name]} (being written)")
+        validate_hinges(recordings, split, f"{root / meta['splits'][name]} (being written)")
     atomic.remove_stale_staging(root)  # left by a writer killed during its final write
     staging = atomic.staging_directory(root)
     try:
@@ -877,6 +935,8 @@ def write_recordings(root: str | os.PathLike, recordings: Recordings) -> Path:
             atomic.write_text(staging / mesh_path, obj_text(recordings.meshes[mesh_path]))
         for name, split in recordings.splits.items():
             atomic.write_npz(staging / meta["splits"][name], split.arrays())
+        for name, text in (extra_files or {}).items():
+            atomic.write_text(staging / _inside_path_checked(name), text)
         atomic.write_json(staging / "meta.json", meta)
         atomic.replace_directory(staging, root)
     except BaseException:

@@ -43,6 +43,7 @@ from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.recordings import Joint, Scene, Static
+from contactbench.sim.articulation import Articulation, articulated
 from contactbench.values import freeze_numbers
 
 MUJOCO_DEFAULT_SOLREF = (0.02, 1.0)  # time constant (s), damping ratio: MuJoCo's default for every contact
@@ -94,9 +95,10 @@ class ContactParameters:
     torsional_friction: float = 0.0  # non-zero turns on condim 4 (all contacts)
     rolling_friction: float = 0.0  # non-zero turns on condim 6 (all contacts)
     effects: SceneEffects = NO_EFFECTS
+    articulation: Articulation | None = None  # hinged scenes: joint damping, friction and inertia; None: as recorded
 
     def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction", "floor_solimp"), skip=("effects",))
+        freeze_numbers(self, vectors=("object_friction", "floor_solimp"), skip=("effects", "articulation"))
         if (self.floor_stiffness is None) != (self.floor_damping is None):
             raise ContactbenchError("floor_stiffness and floor_damping are given together or not at all")
         frictions = self.object_friction + (self.floor_friction, self.torsional_friction, self.rolling_friction)
@@ -157,6 +159,7 @@ def scene_xml(dataset: Scene, params: ContactParameters, substeps: int = 1) -> s
         )
     if substeps < 1:
         raise ContactbenchError(f"substeps must be a positive integer, got {substeps}")
+    dataset = articulated(dataset, params.articulation)
     pieces = [dataset.piece_paths(k) for k in range(dataset.n_bodies)]
     static = dataset.static
     used = [path for paths in pieces for path in paths] + [entry.mesh for entry in static if entry.mesh is not None]
@@ -245,7 +248,7 @@ def _body_tree(dataset: Scene, contents: dict[int, str]) -> list[str]:
             head = (
                 f'<body name="body{k}" pos="{_numbers(joint.parent_anchor - joint.child_anchor)}">'
                 f'<joint name="hinge{j}" type="hinge" pos="{_numbers(joint.child_anchor)}" '
-                f'axis="{_numbers(joint.axis)}" damping="{joint.damping!r}"{limits}/>'
+                f'axis="{_numbers(joint.axis)}" damping="{joint.damping!r}" frictionloss="{joint.friction!r}"{limits}/>'
             )
         else:
             head = f'<body name="body{k}"><freejoint name="joint{k}"/>'

@@ -49,7 +49,7 @@ class IdentifiedModule(pl.LightningModule):
         self.automatic_optimization = False
         self.dataset = dataset
         engines.engine(engine).check_scene(dataset)
-        self.space = search_space(engine, dataset.n_bodies)
+        self.space = search_space(engine, dataset.n_bodies, len(dataset.joints))
         self.register_buffer("selected", torch.full((len(self.space.names),), float("nan"), dtype=torch.float64))
         self.register_buffer("selected_val_loss", torch.tensor(float("inf"), dtype=torch.float64))
 

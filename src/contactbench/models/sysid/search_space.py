@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import nevergrad as ng
 import numpy as np
 
-from contactbench.sim import mujoco_engine
+from contactbench.sim import articulation, mujoco_engine
 from contactbench.sim.engines import Engine, engine
 from contactbench.sim.mujoco_scene import ContactParameters
 
@@ -16,9 +16,10 @@ from contactbench.sim.mujoco_scene import ContactParameters
 class SearchSpace:
     """Per-object friction, floor friction, floor stiffness (log scale) and floor damping, as in Table 2c: MuJoCo's
     dimensions (sim/mujoco_engine.py) as one array of frictions and three scalars, the parametrization every
-    published MuJoCo SysID number here was searched in."""
+    published MuJoCo SysID number here was searched in. A hinged scene adds its articulation (sim/articulation.py)."""
 
     n_bodies: int
+    n_joints: int = 0
     friction: tuple[float, float] = mujoco_engine.FRICTION
     stiffness: tuple[float, float] = mujoco_engine.STIFFNESS  # MuJoCo direct solref: -stiffness
     damping: tuple[float, float] = mujoco_engine.DAMPING  # MuJoCo direct solref: -damping
@@ -26,11 +27,15 @@ class SearchSpace:
 
     @property
     def names(self) -> list[str]:
-        return [f"object_friction_{k}" for k in range(self.n_bodies)] + [
-            "floor_friction",
-            "floor_stiffness",
-            "floor_damping",
-        ]
+        return (
+            [f"object_friction_{k}" for k in range(self.n_bodies)]
+            + [
+                "floor_friction",
+                "floor_stiffness",
+                "floor_damping",
+            ]
+            + [d.name for d in articulation.dimensions(self.n_joints)]
+        )
 
     def parametrization(self, seed: int, restart: int = 0) -> ng.p.Dict:
         space = ng.p.Dict(
@@ -38,6 +43,7 @@ class SearchSpace:
             floor_friction=ng.p.Scalar(lower=self.friction[0], upper=self.friction[1]),
             floor_stiffness=ng.p.Log(lower=self.stiffness[0], upper=self.stiffness[1]),
             floor_damping=ng.p.Scalar(init=self.initial_damping, lower=self.damping[0], upper=self.damping[1]),
+            **_articulation_entries(self.n_joints),
         )
         space.random_state = np.random.RandomState(seed)
         return space
@@ -49,10 +55,14 @@ class SearchSpace:
             floor_friction=float(np.clip(value["floor_friction"], *self.friction)),
             floor_stiffness=float(np.clip(value["floor_stiffness"], *self.stiffness)),
             floor_damping=float(np.clip(value["floor_damping"], *self.damping)),
+            articulation=_articulation(value, self.n_joints),
         )
 
     def to_vector(self, params: ContactParameters) -> np.ndarray:
-        return np.array([*params.object_friction, params.floor_friction, params.floor_stiffness, params.floor_damping])
+        hinges = articulation.to_values(params.articulation).values()
+        return np.array(
+            [*params.object_friction, params.floor_friction, params.floor_stiffness, params.floor_damping, *hinges]
+        )
 
     def from_vector(self, vector) -> ContactParameters:
         vector = np.asarray(vector, dtype=float)
@@ -63,6 +73,7 @@ class SearchSpace:
                 "floor_friction": vector[k],
                 "floor_stiffness": vector[k + 1],
                 "floor_damping": vector[k + 2],
+                **dict(zip(self.names[k + 3 :], vector[k + 3 :])),
             }
         )
 
@@ -77,10 +88,11 @@ class EngineSearchSpace:
     dimensions that act only with another choice are constants in that restart: with a choice among its dimensions
     NGOpt runs a portfolio of DiagonalCMA, PSO and DE, without one the CMA metamodel of MuJoCo's Table 2c search."""
 
-    def __init__(self, engine: Engine, n_bodies: int):
+    def __init__(self, engine: Engine, n_bodies: int, n_joints: int = 0):
         self.engine = engine
         self.n_bodies = n_bodies
-        self.dimensions = engine.dimensions(n_bodies)
+        self.n_joints = n_joints
+        self.dimensions = engine.dimensions(n_bodies) + articulation.dimensions(n_joints)
 
     @property
     def names(self) -> list[str]:
@@ -107,21 +119,42 @@ class EngineSearchSpace:
             d.name: float(d.choices.index(value[d.name])) if d.choices else float(np.clip(value[d.name], d.low, d.high))
             for d in self.dimensions
         }
-        return self.engine.from_values(numbers, self.n_bodies)
+        return self._parameters(numbers)
+
+    def _parameters(self, numbers: dict[str, float]):
+        parameters = self.engine.from_values(numbers, self.n_bodies)
+        if self.n_joints:
+            parameters = replace(parameters, articulation=articulation.from_values(numbers, self.n_joints))
+        return parameters
 
     def to_vector(self, params) -> np.ndarray:
-        values = self.engine.to_values(params)
+        values = self.engine.to_values(params) | articulation.to_values(params.articulation)
         return np.array([values[name] for name in self.names], dtype=float)
 
     def from_vector(self, vector):
-        return self.engine.from_values(dict(zip(self.names, map(float, vector))), self.n_bodies)
+        return self._parameters(dict(zip(self.names, map(float, vector))))
 
     def describe(self, params) -> dict[str, float]:
         return dict(zip(self.names, map(float, self.to_vector(params))))
 
 
-def search_space(engine_name: str, n_bodies: int) -> SearchSpace | EngineSearchSpace:
-    """MuJoCo's Table 2c space, or another engine's own."""
+def _articulation_entries(n_joints: int) -> dict:
+    """The articulation's dimensions as nevergrad parameters (none without hinges)."""
+    return {
+        d.name: (ng.p.Log if d.log else ng.p.Scalar)(init=d.init, lower=d.low, upper=d.high)
+        for d in articulation.dimensions(n_joints)
+    }
+
+
+def _articulation(value: dict, n_joints: int) -> articulation.Articulation | None:
+    """A candidate's articulation, clipped into its domain like the contact parameters."""
+    bounds = {d.name: (d.low, d.high) for d in articulation.dimensions(n_joints)}
+    return articulation.from_values({name: float(np.clip(value[name], *bounds[name])) for name in bounds}, n_joints)
+
+
+def search_space(engine_name: str, n_bodies: int, n_joints: int = 0) -> SearchSpace | EngineSearchSpace:
+    """MuJoCo's Table 2c space, or another engine's own; with hinges, each joint's damping and friction and the
+    links' inertia beside them (sim/articulation.py)."""
     if engine_name == "mujoco":
-        return SearchSpace(n_bodies)
-    return EngineSearchSpace(engine(engine_name), n_bodies)
+        return SearchSpace(n_bodies, n_joints)
+    return EngineSearchSpace(engine(engine_name), n_bodies, n_joints)
