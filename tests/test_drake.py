@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -11,8 +12,10 @@ pytest.importorskip("pydrake")
 
 from test_mujoco_sim import GRAVITY, box, scene  # noqa: E402 (after the skip: nothing here runs without Drake)
 
-from contactbench import rotations  # noqa: E402
+from contactbench import kinematics, rotations  # noqa: E402
 from contactbench.errors import ContactbenchError, NotApplicable  # noqa: E402
+from contactbench.models.sysid.search_space import search_space  # noqa: E402
+from contactbench.sim.articulation import Articulation  # noqa: E402
 from contactbench.sim.drake_engine import DrakeEngine, DrakeParameters, DrakeWorld  # noqa: E402
 
 ENGINE = DrakeEngine()
@@ -195,8 +198,172 @@ def test_worker_processes_give_bit_identical_results():
     assert not np.allclose(results[0].poses[0], results[0].poses[1])
 
 
-def test_the_engine_refuses_multi_body_scenes_as_not_applicable():
-    """Drake 1.51.1 crashed at random in body-body contact during searches (see the module docstring): the engine
-    skips such a job with one line instead of killing a sweep."""
-    with pytest.raises(NotApplicable, match="single-body scenes; .* has 2 bodies"):
-        ENGINE.rollouts(two_bodies())
+def test_the_engine_takes_multi_body_and_hinged_scenes_and_refuses_non_convex_pieces_in_one_line():
+    """Drake 1.51.1 crashes at random in body-body contact during searches (see the module docstring): its tosses
+    always run in worker processes, where a crash costs only the tosses it hit (tests/test_stepped.py)."""
+    assert not DrakeWorld.in_process
+    ENGINE.rollouts(two_bodies()).close()
+    ENGINE.rollouts(hinged_pair()).close()
+    meta = copy.deepcopy(two_bodies().meta)
+    meta["version"] = 2
+    meta["bodies"][1]["pieces"] = [meta["bodies"][1]["mesh"]]
+    with pytest.raises(NotApplicable, match=r"^the Drake engine .*; test-scene has non-convex bodies \(pieces\) "):
+        ENGINE.rollouts(dataclasses.replace(two_bodies(), meta=meta))
+
+
+# ---------------------------------------------------------------- hinges
+
+BAR = box([-0.05, -0.025, -0.025], [0.05, 0.025, 0.025])  # the real elbow's 10 x 5 x 5 cm bars
+
+
+def hinged_pair(
+    damping: float = 0.0, friction: float = 0.0, parent_anchor=(-0.035, 0.06, 0.0), child_anchor=(-0.035, 0.0, 0.0)
+):
+    """Two bars on a hinge along their y axis; by default as the real elbow: the child beside the parent, turning
+    about an axle through both near one end."""
+    dataset = scene([BAR, BAR], dt=0.01)
+    meta = copy.deepcopy(dataset.meta)
+    meta["version"] = 2
+    meta["joints"] = [
+        {
+            "name": "elbow",
+            "type": "hinge",
+            "parent": "body0",
+            "child": "body1",
+            "parent_anchor": list(parent_anchor),
+            "child_anchor": list(child_anchor),
+            "axis": [0.0, 1.0, 0.0],
+            "damping": damping,
+            "friction": friction,
+        }
+    ]
+    return dataclasses.replace(dataset, meta=meta)
+
+
+PAIR_PARAMETERS = DrakeParameters((0.4, 0.4), 0.6, 1e4, 1.0)
+
+
+def toss_pair(dataset, parameters=PAIR_PARAMETERS, angle=0.4, rate=5.0, height=30.0, n_steps=100, substeps=1):
+    """The pair tossed spinning, the child turning about the hinge: start poses and velocities, and what Drake gives."""
+    joint = dataset.joints[0]
+    parent = np.r_[0.0, 0.0, height, START_ORIENTATION]
+    parent_velocity = np.r_[0.5, 0.2, 2.0, 1.0, -2.0, 3.0]
+    child, child_velocity = kinematics.hinge_child(parent, parent_velocity, joint, np.array(angle), np.array(rate))
+    poses0, velocities0 = np.stack([parent, child]), np.stack([parent_velocity, child_velocity])
+    world = DrakeWorld(dataset, substeps)
+    return world, poses0, velocities0, world.toss(parameters, poses0, velocities0, n_steps)
+
+
+def centre_of_mass(dataset, poses, velocities):
+    """The pair's centre of mass and its velocity, from each bar's mesh-frame pose and world velocity."""
+    com, _ = dataset.inertial(0)  # both bars: the same mesh and mass
+    lever = rotations.rotate(poses[..., 3:], com)
+    return (poses[..., :3] + lever).mean(axis=-2), (velocities[..., :3] + np.cross(velocities[..., 3:], lever)).mean(-2)
+
+
+def test_a_hinged_pair_in_free_flight_falls_at_its_centre_of_mass_and_keeps_its_hinge():
+    dataset = hinged_pair()
+    world, poses0, velocities0, (poses, velocities) = toss_pair(dataset)
+    joint = dataset.joints[0]
+    assert np.isfinite(poses).all()
+    # The hinge is exact in every frame: the anchors coincide and the relative turn is about the axis alone.
+    parent_anchor = kinematics.hinge_anchor(poses[:, 0], joint)
+    child_anchor = kinematics.world_vertices(poses[:, 1], joint.child_anchor[None])[:, 0]
+    assert np.abs(parent_anchor - child_anchor).max() < 1e-6
+    relative = rotations.multiply(rotations.conjugate(poses[:, 0, 3:]), poses[:, 1, 3:])
+    assert np.abs(np.cross(relative[:, 1:], joint.axis)).max() < 1e-9
+    # What the world reports is Drake's own kinematics of the last state.
+    simulation = world._simulation(PAIR_PARAMETERS)
+    context = simulation.plant.GetMyContextFromRoot(simulation.simulator.get_context())
+    for k in range(2):
+        body = simulation.plant.GetBodyByName(f"body{k}")
+        pose = simulation.plant.EvalBodyPoseInWorld(context, body)
+        velocity = simulation.plant.EvalBodySpatialVelocityInWorld(context, body)
+        np.testing.assert_allclose(pose.translation(), poses[-1, k, :3], atol=1e-12)
+        np.testing.assert_allclose(pose.rotation().matrix(), rotations.to_matrix(poses[-1, k, 3:]), atol=1e-12)
+        np.testing.assert_allclose(velocity.translational(), velocities[-1, k, :3], atol=1e-12)
+        np.testing.assert_allclose(velocity.rotational(), velocities[-1, k, 3:], atol=1e-12)
+    # Gravity is the only external force: the centre of mass falls on the parabola, up to Drake's first-order step
+    # (ten times smaller steps, ten times smaller errors; a wrong hinge angle, anchor or inertia would leave an error
+    # that does not shrink).
+    errors = []
+    for substeps in (1, 10):
+        _, poses0, velocities0, (poses, velocities) = toss_pair(dataset, substeps=substeps)
+        com0, com_velocity0 = centre_of_mass(dataset, poses0, velocities0)
+        coms, com_velocities = centre_of_mass(dataset, poses, velocities)
+        t = 0.01 * np.arange(1, len(coms) + 1)[:, None]
+        errors.append(
+            (
+                np.abs(coms - (com0 + com_velocity0 * t + GRAVITY * t**2 / 2)).max(),
+                np.abs(com_velocities - (com_velocity0 + GRAVITY * t)).max(),
+            )
+        )
+    (position_error, velocity_error), (fine_position_error, fine_velocity_error) = errors
+    assert fine_position_error < 1e-2 and 8 < position_error / fine_position_error < 12
+    assert fine_velocity_error < 1e-3 and 8 < velocity_error / fine_velocity_error < 12
+
+
+def test_joint_damping_and_friction_slow_the_relative_spin():
+    rates = {}
+    for name, damping, friction in (("free", 0.0, 0.0), ("damped", 0.002, 0.0), ("rubbing", 0.0, 0.01)):
+        dataset = hinged_pair(damping, friction)
+        _, _, _, (poses, velocities) = toss_pair(dataset, n_steps=50)
+        _, rate = kinematics.hinge_coordinates(
+            poses[:, 0], velocities[:, 0], poses[:, 1], velocities[:, 1], dataset.joints[0]
+        )
+        rates[name] = np.abs(rate)
+    assert rates["free"].min() > 2.0  # the free hinge keeps turning
+    # Damping takes the rate down smoothly; friction stops the joint and holds it.
+    assert np.all(np.diff(rates["damped"]) < 0) and rates["damped"][-1] < 0.1 * rates["free"][-1]
+    assert rates["rubbing"][-1] < 0.05 and rates["rubbing"][-1] < 0.02 * rates["free"][-1]
+
+
+def test_articulation_parameters_round_trip_the_search_space_and_act():
+    space = search_space("drake", 2, 1)
+    assert {"joint_damping_0", "joint_friction_0", "inertia_scale"} <= set(space.names)
+    candidate = space.to_parameters(space.parametrization(seed=0).value)
+    assert candidate.articulation is not None
+    assert space.from_vector(space.to_vector(candidate)) == candidate
+    fitted = dataclasses.replace(candidate, articulation=Articulation((0.004,), (0.0,), 1.5))
+    assert space.from_vector(space.to_vector(fitted)) == fitted and hash(fitted) == hash(
+        space.from_vector(space.to_vector(fitted))
+    )
+    # The articulation replaces the scene's joint values: damping in it acts like damping recorded in the scene.
+    dataset = hinged_pair()
+    recorded = toss_pair(hinged_pair(0.004), n_steps=30)[-1]
+    identified = toss_pair(
+        dataset, dataclasses.replace(PAIR_PARAMETERS, articulation=Articulation((0.004,), (0.0,))), n_steps=30
+    )[-1]
+    np.testing.assert_array_equal(identified[0], recorded[0])
+    scaled = toss_pair(
+        dataset, dataclasses.replace(PAIR_PARAMETERS, articulation=Articulation((0.0,), (0.0,), 1.5)), n_steps=30
+    )[-1]
+    assert not np.allclose(scaled[0], toss_pair(dataset, n_steps=30)[-1][0])
+
+
+def test_folding_links_collide_and_a_hinged_scene_file_simulates_as_the_world(tmp_path):
+    """The SDFormat revolute joint carries the hinge's damping and friction; hinged links collide with each other."""
+    # End to end on an axle beyond both bars' ends: the parent lies on the floor, the child stands up from the axle
+    # and tips over towards it. Its inner edge catches on the parent's top edge long before it could fold flat
+    # (angle ±π, where the two bars would overlap).
+    dataset = hinged_pair(parent_anchor=(0.08, 0.0, 0.0), child_anchor=(-0.08, 0.0, 0.0))
+    parameters = dataclasses.replace(PAIR_PARAMETERS, articulation=Articulation((0.001,), (0.002,), 1.2))
+    files = ENGINE.scene_files(dataset, parameters, substeps=2)
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert '<joint name="hinge0" type="revolute">' in files["scene.sdf"]
+    parent = np.r_[0.0, 0.0, 0.025, 1.0, 0.0, 0.0, 0.0]
+    child, child_velocity = kinematics.hinge_child(parent, np.zeros(6), dataset.joints[0], -np.pi / 2, -1.0)
+    poses0, velocities0 = np.stack([parent, child]), np.stack([np.zeros(6), child_velocity])
+    built = DrakeWorld(dataset, 2).toss(parameters, poses0, velocities0, 100)
+    parsed = DrakeWorld(dataset, 2, scene_file=tmp_path / "scene.sdf").toss(parameters, poses0, velocities0, 100)
+    for from_file, from_world in zip(parsed, built):
+        np.testing.assert_allclose(from_file, from_world, rtol=0, atol=1e-9)
+    poses, velocities = built
+    angles, _ = kinematics.hinge_coordinates(
+        poses[:, 0], velocities[:, 0], poses[:, 1], velocities[:, 1], dataset.joints[0]
+    )
+    assert np.isfinite(poses).all() and np.abs(angles).max() < 2.0 and angles[-1] < -np.pi / 2
+    assert poses[-1, 1, 2] > 0.09  # still up, leaning on the parent
+    np.testing.assert_allclose(velocities[-1], 0.0, atol=1e-3)

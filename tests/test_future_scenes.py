@@ -333,8 +333,7 @@ def test_the_rigid_gnn_swings_the_elbow_as_pybullet_does_with_its_joint_reaction
 def test_models_that_know_only_the_flat_floor_refuse_the_new_scenes_in_one_line(ramp, elbow):
     with pytest.raises(NotApplicable, match="flat floor"):
         engine("drake").check_scene(ramp.scene)
-    with pytest.raises(NotApplicable, match="joints"):
-        engine("bullet").check_scene(elbow.scene)
+    engine("bullet").check_scene(elbow.scene)  # PyBullet and Drake build hinges (test_bullet_engine.py, test_drake.py)
     with pytest.raises(NotApplicable, match="terrain"):
         single_body_scene(ramp.scene)
     from contactbench.models.residual.correction import Bodies
@@ -394,6 +393,6 @@ def test_train_runs_every_model_on_the_new_families_or_skips_it_in_one_line(tmp_
     scored = json.loads((tmp_path / "gnn" / "test" / "metrics.json").read_text())
     assert scored["joint_gap_m"] < 1e-9 and scored["joint_axis_error_rad"] < 1e-9  # the GNN keeps the hinge
     assert np.isfinite(scored["pos_err"])
-    for model in ("sysid_bullet", "sysid_mjx", "hybrid", "residual", "gnn_paper"):
+    for model in ("hybrid", "residual", "gnn_paper"):
         with pytest.raises(NotApplicable):
             runs.train(config(model), tmp_path / model)

@@ -299,12 +299,14 @@ def table_2a_world(client: int, settings: BulletSettings, gravity: np.ndarray) -
     pybullet.setGravity(*np.asarray(gravity, dtype=float).tolist(), physicsClientId=client)
 
 
-def convex_compound(client: int, pieces: Sequence[Mesh]) -> int:
+def convex_compound(client: int, pieces: Sequence[Mesh], origin: np.ndarray | None = None) -> int:
     """A collision shape of convex pieces: one hull (PyBullet wraps vertices without indices in their hull), or, for
-    several, an OBJ with one object per piece, which PyBullet loads as a compound of their hulls."""
+    several, an OBJ with one object per piece, which PyBullet loads as a compound of their hulls. `origin`: where the
+    pieces' frame sits in the frame the shape is attached to (a multibody link's frame is its joint's)."""
+    placed = {} if origin is None else {"collisionFramePosition": np.asarray(origin, dtype=float).tolist()}
     if len(pieces) == 1:
         return pybullet.createCollisionShape(
-            pybullet.GEOM_MESH, vertices=pieces[0].vertices.tolist(), physicsClientId=client
+            pybullet.GEOM_MESH, vertices=pieces[0].vertices.tolist(), physicsClientId=client, **placed
         )
     with tempfile.TemporaryDirectory(prefix="contactbench-pieces-") as folder:
         path = Path(folder) / "pieces.obj"
@@ -313,7 +315,20 @@ def convex_compound(client: int, pieces: Sequence[Mesh]) -> int:
             lines.append(f"o piece_{i}\n" + obj_text(Mesh(piece.vertices, piece.faces + offset)))
             offset += len(piece.vertices)
         path.write_text("".join(lines))
-        return pybullet.createCollisionShape(pybullet.GEOM_MESH, fileName=str(path), physicsClientId=client)
+        return pybullet.createCollisionShape(pybullet.GEOM_MESH, fileName=str(path), physicsClientId=client, **placed)
+
+
+def change_dynamics(client: int, body: int, link: int, **settings) -> None:
+    """pybullet.changeDynamics of a body's base (link -1) or link. For a link, one setting a call: several in one call
+    went partly to the base or were dropped (a collision margin beside them dropped the mass, inertia and material;
+    air drag beside them sent the inertia to the base), so each goes alone, the mass before the inertia it resets."""
+    if link < 0:
+        pybullet.changeDynamics(body, link, physicsClientId=client, **settings)
+        return
+    compliance = {key: settings.pop(key) for key in ("contactStiffness", "contactDamping") if key in settings}
+    order = sorted(settings, key=lambda key: key == "localInertiaDiagonal")
+    for update in [{key: settings[key]} for key in order] + ([compliance] if compliance else []):
+        pybullet.changeDynamics(body, link, physicsClientId=client, **update)
 
 
 def add_static(

@@ -7,7 +7,15 @@ Conventions
   bodies without PyBullet's default air drag and 1 mm collision margin (`BODY_DYNAMICS_OVERRIDES`). PyBullet combines
   two materials by multiplying their friction and their restitution; the floor carries 1 for both, so a body's own
   coefficients are the pair's. Bodies collide as their convex pieces (their meshes' hulls where they have none), with
-  one another, the floor and the terrain (recordings version 2; the floor's material). Joints are not built here.
+  one another, the floor and the terrain (recordings version 2; the floor's material).
+* Hinges (recordings version 2) as the generator builds its elbow (generation/articulated.py): one multibody per tree
+  of jointed bodies, its root the base, every other body a link on a revolute joint whose frame sits at the anchor
+  (link frames parallel to the mesh frames), its links colliding with one another, parent and child included.
+  Joint damping is a torque against the joint rate applied before each step (PyBullet's own jointDamping does not
+  act on such a multibody), Coulomb friction a velocity motor held at 0 with the friction as its largest torque
+  (PyBullet's default motor switched off where there is none), a range PyBullet's joint limit. A toss starts from the
+  roots' poses and velocities and the joint angles and rates (`kinematics.hinge_coordinates`) and returns every
+  child from its parent and its joint's state (`kinematics.hinge_child`), so the output keeps each hinge exactly.
 * PyBullet places and reports a body by its inertial frame (centre of mass, principal axes); recordings poses are the
   mesh frame's. A world converts at this boundary (`_to_inertial`, `_to_mesh`).
 
@@ -18,6 +26,7 @@ spinning_friction (m): torsional friction, a torque of spinning_friction x the n
 normal; rolling_friction (m): the same against rolling. contact_stiffness (N/m) and contact_damping (N s/m): a
 compliant contact (PyBullet turns them into each step's ERP = h k / (h k + d) and CFM = 1 / (h k + d)); None (both)
 keeps PyBullet's own rigid contact, which resolves penetration by error reduction (what the generator uses).
+articulation: a hinged scene's joint damping and friction and inertia scale (sim/articulation.py); None: as recorded.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.generation.bullet import (
     BODY_DYNAMICS_OVERRIDES,
     add_static,
+    change_dynamics,
     convex_compound,
     engine_states,
     forget_contacts,
@@ -41,13 +51,19 @@ from contactbench.generation.bullet import (
     recorded_motion,
 )
 from contactbench.generation.scenes import BulletSettings
+from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.meshes import obj_text
-from contactbench.recordings import Scene
+from contactbench.recordings import Joint, Scene
+from contactbench.sim.articulation import Articulation, articulated
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
 from contactbench.values import freeze_numbers
 
 TABLE_2A = BulletSettings()
+# What a recordings hinge may say (RECORDINGS.md, version 2), all of which the world builds
+HINGE_FIELDS = frozenset(
+    ("name", "type", "parent", "child", "parent_anchor", "child_anchor", "axis", "damping", "friction", "range")
+)
 CONTACT_MODES = (
     "rigid",
     "compliant",
@@ -64,9 +80,10 @@ class BulletParameters:
     rolling_friction: float = 0.0
     contact_stiffness: float | None = None
     contact_damping: float | None = None
+    articulation: Articulation | None = None
 
     def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction", "restitution"))
+        freeze_numbers(self, vectors=("object_friction", "restitution"), skip=("articulation",))
         if len(self.object_friction) != len(self.restitution):
             raise ContactbenchError(
                 f"{len(self.object_friction)} frictions and {len(self.restitution)} restitutions "
@@ -109,6 +126,46 @@ def inertial_frames(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(coms), np.array(axes), np.array(moments)
 
 
+@dataclass(frozen=True)
+class Tree:
+    """A root body and the joints (indices into `Scene.joints`) of the bodies hanging from it, in PyBullet's link
+    order (link n turns on joints[n]); a free body is a tree without joints."""
+
+    root: int
+    joints: tuple[int, ...] = ()
+
+
+def trees(scene: Scene) -> tuple[Tree, ...]:
+    """The scene's trees of jointed bodies, in the order of their roots among the bodies."""
+    joints = scene.joints  # parents first
+    children = {joint.child for joint in joints}
+    result = []
+    for root in (k for k in range(scene.n_bodies) if k not in children):
+        members, hanging = {root}, []
+        for j, joint in enumerate(joints):
+            if joint.parent in members:
+                members.add(joint.child)
+                hanging.append(j)
+        result.append(Tree(root, tuple(hanging)))
+    return tuple(result)
+
+
+def link_origins(scene: Scene) -> np.ndarray:
+    """Per body [K, 3]: the origin of its PyBullet link frame in its mesh frame, its joint's anchor (a root: 0)."""
+    origins = np.zeros((scene.n_bodies, 3))
+    for joint in scene.joints:
+        origins[joint.child] = joint.child_anchor
+    return origins
+
+
+def _start_angle(joint: Joint, angle: float) -> float:
+    """The turn nearest the middle of the joint's range (hinge_coordinates gives one in (-pi, pi])."""
+    if joint.range is None:
+        return float(angle)
+    middle = 0.5 * (joint.range[0] + joint.range[1])
+    return float(angle + 2 * np.pi * np.round((middle - angle) / (2 * np.pi)))
+
+
 class BulletWorld(World):
     """A private PyBullet DIRECT world of a recordings scene, reused toss after toss."""
 
@@ -118,6 +175,16 @@ class BulletWorld(World):
         self.coms, self.axes, self.moments = inertial_frames(scene)
         # Every mesh frame at its centre of mass and along its principal axes (a generated scene): nothing to convert
         self.mesh_frames_inertial = not self.coms.any() and bool(np.all(self.axes == [1.0, 0.0, 0.0, 0.0]))
+        self.joints = scene.joints
+        self.trees = trees(scene)
+        self.roots = np.array([tree.root for tree in self.trees])
+        self.origins = link_origins(scene)
+        # Per body: its tree and its link there (-1: the base)
+        self.links = [(0, -1)] * scene.n_bodies
+        for i, tree in enumerate(self.trees):
+            self.links[tree.root] = (i, -1)
+            for n, j in enumerate(tree.joints):
+                self.links[self.joints[j].child] = (i, n)
         self.parameters: BulletParameters | None = None
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
@@ -151,28 +218,66 @@ class BulletWorld(World):
             spinningFriction=0.0,
             physicsClientId=client,
         )
-        shapes: dict[str, int] = {}
+        shapes: dict[tuple, int] = {}
+
+        def shape(k: int) -> int:
+            """Body k's convex pieces (its hull, where it has none), in its link frame."""
+            origin = -self.origins[k]
+            key = (scene.bodies[k].mesh, *origin.tolist())
+            if key not in shapes:
+                shapes[key] = convex_compound(client, scene.body_pieces(k), origin if origin.any() else None)
+            return shapes[key]
+
         bodies = []
-        for k, body in enumerate(scene.bodies):
-            if body.mesh not in shapes:  # a body's convex pieces (its hull, where it has none), in its mesh frame
-                shapes[body.mesh] = convex_compound(client, scene.body_pieces(k))
+        for i, tree in enumerate(self.trees):
+            k, joints = tree.root, [self.joints[j] for j in tree.joints]
+            link_of = {joint.child: n for n, joint in enumerate(joints)}
+            children = [joint.child for joint in joints]
+            hinges = {}
+            if joints:
+                hinges = {
+                    "linkMasses": [scene.bodies[c].mass for c in children],
+                    "linkCollisionShapeIndices": [shape(c) for c in children],
+                    "linkVisualShapeIndices": [-1] * len(joints),
+                    "linkPositions": [(joint.parent_anchor - self.origins[joint.parent]).tolist() for joint in joints],
+                    "linkOrientations": [[0.0, 0.0, 0.0, 1.0]] * len(joints),  # angle 0: parallel frames
+                    "linkInertialFramePositions": [(self.coms[c] - self.origins[c]).tolist() for c in children],
+                    "linkInertialFrameOrientations": [rotations.wxyz_to_xyzw(self.axes[c]).tolist() for c in children],
+                    "linkParentIndices": [link_of.get(joint.parent, -1) + 1 for joint in joints],  # 0: the base
+                    "linkJointTypes": [pybullet.JOINT_REVOLUTE] * len(joints),
+                    "linkJointAxis": [joint.axis.tolist() for joint in joints],
+                    # jointed bodies collide with each other (PyBullet leaves a link and its parent out by default)
+                    "flags": pybullet.URDF_USE_SELF_COLLISION | pybullet.URDF_USE_SELF_COLLISION_INCLUDE_PARENT,
+                }
             handle = pybullet.createMultiBody(
-                body.mass,
-                shapes[body.mesh],
-                basePosition=parking_spot(k),
+                scene.bodies[k].mass,
+                shape(k),
+                basePosition=parking_spot(i),
                 baseInertialFramePosition=self.coms[k].tolist(),
                 baseInertialFrameOrientation=rotations.wxyz_to_xyzw(self.axes[k]).tolist(),
                 physicsClientId=client,
+                **hinges,
             )
-            pybullet.changeDynamics(
-                handle,
-                -1,
-                mass=body.mass,
-                localInertiaDiagonal=self.moments[k].tolist(),
-                physicsClientId=client,
-                **BODY_DYNAMICS_OVERRIDES,
-            )
+            for body, link in ((k, -1), *((c, n) for n, c in enumerate(children))):
+                change_dynamics(
+                    client,
+                    handle,
+                    link,
+                    mass=scene.bodies[body].mass,
+                    localInertiaDiagonal=self.moments[body].tolist(),
+                    **BODY_DYNAMICS_OVERRIDES,
+                )
+            for n, joint in enumerate(joints):
+                if joint.range is not None:  # a limit, once set, stays: ranges are the scene's, never a candidate's
+                    pybullet.changeDynamics(
+                        handle,
+                        n,
+                        jointLowerLimit=joint.range[0],
+                        jointUpperLimit=joint.range[1],
+                        physicsClientId=client,
+                    )
             bodies.append(handle)
+        self.inertia_factor = 1.0  # the inertia scale applied, relative to the scene's
         # terrain after the bodies, as the generator builds it: PyBullet's contact order follows creation order
         add_static(
             client,
@@ -183,12 +288,13 @@ class BulletWorld(World):
         return tuple(bodies)
 
     def _apply(self, parameters: BulletParameters) -> None:
-        if len(parameters.object_friction) != len(self.bodies):
+        if len(parameters.object_friction) != self.scene.n_bodies:
             raise ContactbenchError(
-                f"{len(parameters.object_friction)} object frictions for a scene of {len(self.bodies)} bodies"
+                f"{len(parameters.object_friction)} object frictions for a scene of {self.scene.n_bodies} bodies"
             )
         if parameters == self.parameters:
             return
+        scene = articulated(self.scene, parameters.articulation)
         compliance = {}
         if parameters.contact_stiffness is not None:
             compliance = {
@@ -200,32 +306,61 @@ class BulletWorld(World):
             self.close()
             self.client = pybullet.connect(pybullet.DIRECT)
             self.bodies = self._build()
-        for k, handle in enumerate(self.bodies):
-            pybullet.changeDynamics(
-                handle,
-                -1,
+        factor = scene.inertia_scale / self.scene.inertia_scale
+        inertia = factor != self.inertia_factor
+        for k, (i, link) in enumerate(self.links):
+            change_dynamics(
+                self.client,
+                self.bodies[i],
+                link,
                 lateralFriction=parameters.object_friction[k],
                 restitution=parameters.restitution[k],
                 spinningFriction=parameters.spinning_friction,
                 rollingFriction=parameters.rolling_friction,
-                physicsClientId=self.client,
                 **compliance,
+                **({"localInertiaDiagonal": (factor * self.moments[k]).tolist()} if inertia else {}),
             )
+        self.inertia_factor = factor
+        # Per tree with joints: its handle, its links and their dampings (N m s/rad), applied before every step.
+        self.damped = []
+        joints = scene.joints
+        for i, tree in enumerate(self.trees):
+            if not tree.joints:
+                continue
+            links = list(range(len(tree.joints)))
+            # Coulomb friction: a velocity motor held at 0 that gives at most the friction; 0 also switches off
+            # PyBullet's default motor, which would hold the joint.
+            pybullet.setJointMotorControlArray(
+                self.bodies[i],
+                links,
+                pybullet.VELOCITY_CONTROL,
+                targetVelocities=[0.0] * len(links),
+                forces=[joints[j].friction for j in tree.joints],
+                physicsClientId=self.client,
+            )
+            damping = [joints[j].damping for j in tree.joints]
+            if any(damping):
+                self.damped.append((i, links, damping))
         self.parameters = parameters
 
-    def _to_inertial(self, poses: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mesh-frame poses [K, 7] / world velocities [K, 6] -> the inertial frames' (PyBullet's base frames)."""
-        offset = rotations.rotate(poses[:, 3:], self.coms)
-        orientation = rotations.multiply(poses[:, 3:], self.axes)
+    def _to_inertial(
+        self, poses: np.ndarray, velocities: np.ndarray, bodies: np.ndarray | slice = slice(None)
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Mesh-frame poses [K, 7] / world velocities [K, 6] of `bodies` -> the inertial frames' (PyBullet's)."""
+        offset = rotations.rotate(poses[:, 3:], self.coms[bodies])
+        orientation = rotations.multiply(poses[:, 3:], self.axes[bodies])
         linear = velocities[:, :3] + np.cross(velocities[:, 3:], offset)
         return np.concatenate([poses[:, :3] + offset, orientation], axis=1), np.concatenate(
             [linear, velocities[:, 3:]], axis=1
         )
 
-    def _to_mesh(self, poses: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _to_mesh(
+        self, poses: np.ndarray, velocities: np.ndarray, bodies: np.ndarray | slice = slice(None)
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The inverse of _to_inertial, over leading axes: poses [..., K, 7], velocities [..., K, 6]."""
-        orientation = rotations.multiply(poses[..., 3:], rotations.conjugate(self.axes))
-        offset = rotations.rotate(orientation, np.broadcast_to(self.coms, poses.shape[:-1] + (3,)))
+        coms, axes = self.coms[bodies], self.axes[bodies]
+        orientation = rotations.multiply(poses[..., 3:], rotations.conjugate(axes))
+        offset = rotations.rotate(orientation, np.broadcast_to(coms, poses.shape[:-1] + (3,)))
         linear = velocities[..., :3] - np.cross(velocities[..., 3:], offset)
         return np.concatenate([poses[..., :3] - offset, orientation], axis=-1), np.concatenate(
             [linear, velocities[..., 3:]], axis=-1
@@ -235,6 +370,8 @@ class BulletWorld(World):
         self, parameters: BulletParameters, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int
     ) -> tuple[np.ndarray, np.ndarray]:
         self._apply(parameters)
+        if self.joints:
+            return self._toss_hinged(np.asarray(poses0), np.asarray(velocities0), n_steps)
         client, bodies = self.client, self.bodies
         forget_contacts(client, bodies)
         base_poses, base_velocities = np.asarray(poses0), np.asarray(velocities0)
@@ -261,10 +398,74 @@ class BulletWorld(World):
         poses, velocities = recorded_motion(states, base_poses[:, 3:])
         return (poses, velocities) if self.mesh_frames_inertial else self._to_mesh(poses, velocities)
 
-    def close(self) -> None:
-        if self.client >= 0:
-            pybullet.disconnect(physicsClientId=self.client)
-            self.client = -1
+    def _toss_hinged(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
+        """A toss of a scene with joints: the roots' states and the joints' are read, every child placed on its
+        parent by its joint's angle and rate."""
+        client, bodies, joints, roots = self.client, self.bodies, self.joints, self.roots
+        jointed = [(self.bodies[i], list(range(len(tree.joints)))) for i, tree in enumerate(self.trees) if tree.joints]
+        # Angle 0 before parking: two links left touching would keep their contact manifold, and its warm start,
+        # into this toss (links cannot be parked apart).
+        for handle, links in jointed:
+            for n in links:
+                pybullet.resetJointState(handle, n, 0.0, 0.0, physicsClientId=client)
+        forget_contacts(client, bodies)
+        base_poses, base_velocities = poses0[roots], velocities0[roots]
+        if not self.mesh_frames_inertial:
+            base_poses, base_velocities = self._to_inertial(base_poses, base_velocities, roots)
+        for body, pose, velocity in zip(bodies, base_poses, base_velocities):
+            pybullet.resetBasePositionAndOrientation(
+                body, pose[:3].tolist(), rotations.wxyz_to_xyzw(pose[3:]).tolist(), physicsClientId=client
+            )
+            pybullet.resetBaseVelocity(body, velocity[:3].tolist(), velocity[3:].tolist(), physicsClientId=client)
+        for joint in joints:
+            parent, child = joint.parent, joint.child
+            angle, rate = hinge_coordinates(
+                poses0[parent], velocities0[parent], poses0[child], velocities0[child], joint
+            )
+            i, n = self.links[child]
+            pybullet.resetJointState(bodies[i], n, _start_angle(joint, angle), float(rate), physicsClientId=client)
+        step, read_pose, read_velocity, read_joints, drive = (
+            pybullet.stepSimulation,
+            pybullet.getBasePositionAndOrientation,
+            pybullet.getBaseVelocity,
+            pybullet.getJointStates,
+            pybullet.setJointMotorControlArray,
+        )
+        readings, joint_readings = [], []
+        record, record_joints = readings.append, joint_readings.append
+        for _ in range(n_steps):
+            for i, links, damping in self.damped:
+                rates = [state[1] for state in read_joints(bodies[i], links, physicsClientId=client)]
+                forces = [-d * rate for d, rate in zip(damping, rates)]
+                drive(bodies[i], links, pybullet.TORQUE_CONTROL, forces=forces, physicsClientId=client)
+            step(client)
+            for body in bodies:
+                record(read_pose(body, client))
+                record(read_velocity(body, client))
+            for handle, links in jointed:
+                record_joints(read_joints(handle, links, physicsClientId=client))
+        states = engine_states(readings, n_steps, len(bodies))
+        base, base_velocity = recorded_motion(states, base_poses[:, 3:])
+        if not self.mesh_frames_inertial:
+            base, base_velocity = self._to_mesh(base, base_velocity, roots)
+        poses, velocities = np.empty((n_steps, self.scene.n_bodies, 7)), np.empty((n_steps, self.scene.n_bodies, 6))
+        poses[:, roots], velocities[:, roots] = base, base_velocity
+        # [n_steps, joints, 2] angle and rate, in the trees' link order
+        coordinates = np.array([state[:2] for states in joint_readings for state in states]).reshape(n_steps, -1, 2)
+        order = [j for tree in self.trees for j in tree.joints]
+        for column, j in enumerate(order):
+            joint = joints[j]
+            pose, velocity = hinge_child(
+                poses[:, joint.parent],
+                velocities[:, joint.parent],
+                joint,
+                coordinates[:, column, 0],
+                coordinates[:, column, 1],
+            )
+            if np.dot(pose[0, 3:], poses0[joint.child, 3:]) < 0:  # the recorded child quaternion's side
+                pose[:, 3:] *= -1
+            poses[:, joint.child], velocities[:, joint.child] = pose, velocity
+        return poses, velocities
 
 
 class BulletEngine(Engine):
@@ -273,11 +474,19 @@ class BulletEngine(Engine):
     name = "bullet"
 
     def check_scene(self, scene: Scene) -> None:
-        if scene.joints:
-            raise NotApplicable(
-                f"the PyBullet engine here simulates free bodies (convex pieces, on any terrain); {scene.name} has "
-                "joints (model=sysid and mujoco_default simulate those)"
-            )
+        """Hinges with anchors, axis, damping, friction and range are built; any other kind of joint or joint field
+        is refused, naming it, rather than simulated without it."""
+        for j, entry in enumerate(scene.meta.get("joints", []) if scene.joints else []):
+            if entry.get("type") != "hinge":
+                raise NotApplicable(
+                    f"{scene.name}: joints[{j}] field 'type' is {entry.get('type')!r}; PyBullet builds hinges only"
+                )
+            unknown = sorted(set(entry) - HINGE_FIELDS)
+            if unknown:
+                raise NotApplicable(
+                    f"{scene.name}: joints[{j}] field {unknown[0]!r} is not one the PyBullet engine can build (it "
+                    f"knows {', '.join(sorted(HINGE_FIELDS))})"
+                )
 
     def default_parameters(self, n_bodies: int) -> BulletParameters:
         """PyBullet's own body defaults: friction 0.5, restitution 0, no spinning or rolling friction, rigid contact."""
@@ -344,12 +553,16 @@ def _roll_pitch_yaw(q: np.ndarray) -> np.ndarray:
 
 
 def scene_files(scene: Scene, parameters: BulletParameters) -> dict[str, str]:
-    """One URDF per body (body_<k>.urdf: pybullet.loadURDF with flags=URDF_USE_INERTIA_FROM_FILE, else PyBullet
-    computes an inertia of its own from the collision shape) with its inertial frame, its convex pieces
-    (meshes/body_<k>_<i>.obj, one <collision> each; a convex body has one) and its contact parameters in PyBullet's
-    <contact> extension; terrain as static_<i>.urdf (mass 0; a height field as its triangle surface); the world
-    settings (step, gravity, the floor and its material) are stated in a comment, as the generator sets them."""
+    """One URDF per free body or tree of hinged bodies (body_<k>.urdf, k its root: pybullet.loadURDF with
+    flags=URDF_USE_INERTIA_FROM_FILE, else PyBullet computes an inertia of its own from the collision shape): a link
+    per body with its inertial frame, its convex pieces (meshes/body_<k>_<i>.obj, one <collision> each; a convex body
+    has one) and its contact parameters in PyBullet's <contact> extension, and per hinge a continuous (revolute, with a
+    range) joint at the anchor with its damping and friction in <dynamics>; terrain as static_<i>.urdf (mass 0; a
+    height field as its triangle surface); the world settings (step, gravity, the floor and its material) and how the
+    world drives the hinges are stated in a comment, as the generator sets them."""
+    scene = articulated(scene, parameters.articulation)
     coms, axes, moments = inertial_frames(scene)
+    origins, joints = link_origins(scene), scene.joints
     world = (
         f"PyBullet world: fixedTimeStep {scene.dt!r} s, gravity {_numbers(scene.gravity)}, a plane at z = "
         f"{scene.floor_z!r} with lateral friction {TABLE_2A.floor_friction!r} and restitution "
@@ -358,31 +571,61 @@ def scene_files(scene: Scene, parameters: BulletParameters) -> dict[str, str]:
         "flags=URDF_USE_INERTIA_FROM_FILE; after loading: "
         + ", ".join(f"{key} {value!r}" for key, value in BODY_DYNAMICS_OVERRIDES.items() if key != "collisionMargin")
     )
-    files = {}
-    for k, body in enumerate(scene.bodies):
+    hinged = (
+        "; hinges: load with flags=URDF_USE_INERTIA_FROM_FILE | URDF_USE_SELF_COLLISION | "
+        "URDF_USE_SELF_COLLISION_INCLUDE_PARENT (the links collide with one another), then per joint "
+        "setJointMotorControl2(VELOCITY_CONTROL, targetVelocity=0, force=<dynamics friction>) and before every step "
+        "setJointMotorControl2(TORQUE_CONTROL, force=-<dynamics damping> x the joint rate)"
+    )
+    names = [quoteattr(body.name) for body in scene.bodies]
+
+    def link(k: int) -> list[str]:
         compliance = ""
         if parameters.contact_stiffness is not None:
             stiffness, damping = parameters.contact_stiffness, parameters.contact_damping
             compliance = f'<stiffness value="{stiffness!r}"/><damping value="{damping!r}"/>'
-        files[f"body_{k}.urdf"] = "\n".join(
+        # a child's link frame is its joint's, at the anchor: its mesh frame sits at minus the anchor there
+        mesh = f'<origin xyz="{_numbers(-origins[k])}" rpy="0 0 0"/>' if origins[k].any() else ""
+        return [
+            f"<link name={names[k]}>",
+            f'<contact><lateral_friction value="{parameters.object_friction[k]!r}"/>'
+            f'<restitution value="{parameters.restitution[k]!r}"/>'
+            f'<spinning_friction value="{parameters.spinning_friction!r}"/>'
+            f'<rolling_friction value="{parameters.rolling_friction!r}"/>{compliance}</contact>',
+            f'<inertial><origin xyz="{_numbers(coms[k] - origins[k])}" rpy="{_numbers(_roll_pitch_yaw(axes[k]))}"/>'
+            f'<mass value="{scene.bodies[k].mass!r}"/><inertia ixx="{float(moments[k][0])!r}" ixy="0" ixz="0" '
+            f'iyy="{float(moments[k][1])!r}" iyz="0" izz="{float(moments[k][2])!r}"/></inertial>',
+            *(
+                f'<collision>{mesh}<geometry><mesh filename="meshes/body_{k}_{i}.obj"/></geometry></collision>'
+                for i in range(len(scene.body_pieces(k)))
+            ),
+            f'<visual>{mesh}<geometry><mesh filename="meshes/body_{k}.obj"/></geometry></visual>',
+            "</link>",
+        ]
+
+    def hinge(joint: Joint) -> list[str]:
+        limit = ""
+        if joint.range is not None:
+            limit = f'<limit lower="{joint.range[0]!r}" upper="{joint.range[1]!r}" effort="0" velocity="0"/>'
+        return [
+            f'<joint name={quoteattr(joint.name)} type="{"revolute" if limit else "continuous"}">',
+            f"<parent link={names[joint.parent]}/><child link={names[joint.child]}/>",
+            f'<origin xyz="{_numbers(joint.parent_anchor - origins[joint.parent])}" rpy="0 0 0"/>',
+            f'<axis xyz="{_numbers(joint.axis)}"/>{limit}',
+            f'<dynamics damping="{joint.damping!r}" friction="{joint.friction!r}"/>',
+            "</joint>",
+        ]
+
+    files = {}
+    for tree in trees(scene):
+        members = [tree.root] + [joints[j].child for j in tree.joints]
+        files[f"body_{tree.root}.urdf"] = "\n".join(
             [
                 "<?xml version='1.0'?>",
-                f"<!-- {world} -->",
-                f"<robot name={quoteattr(body.name)}>",
-                f"<link name={quoteattr(body.name)}>",
-                f'<contact><lateral_friction value="{parameters.object_friction[k]!r}"/>'
-                f'<restitution value="{parameters.restitution[k]!r}"/>'
-                f'<spinning_friction value="{parameters.spinning_friction!r}"/>'
-                f'<rolling_friction value="{parameters.rolling_friction!r}"/>{compliance}</contact>',
-                f'<inertial><origin xyz="{_numbers(coms[k])}" rpy="{_numbers(_roll_pitch_yaw(axes[k]))}"/>'
-                f'<mass value="{body.mass!r}"/><inertia ixx="{float(moments[k][0])!r}" ixy="0" ixz="0" '
-                f'iyy="{float(moments[k][1])!r}" iyz="0" izz="{float(moments[k][2])!r}"/></inertial>',
-                *(
-                    f'<collision><geometry><mesh filename="meshes/body_{k}_{i}.obj"/></geometry></collision>'
-                    for i in range(len(scene.body_pieces(k)))
-                ),
-                f'<visual><geometry><mesh filename="meshes/body_{k}.obj"/></geometry></visual>',
-                "</link>",
+                f"<!-- {world}{hinged if tree.joints else ''} -->",
+                f"<robot name={names[tree.root]}>",
+                *(line for k in members for line in link(k)),
+                *(line for j in tree.joints for line in hinge(joints[j])),
                 "</robot>",
             ]
         )

@@ -51,16 +51,39 @@ Simulation
   raises and SteppedRollouts turns it into an unstable (NaN) candidate.
 * A free body's state is q = (qw, qx, qy, qz, x, y, z) of its frame in world and v = (ω, v) in world: exactly the
   recordings' pose (reordered) and world velocity of the mesh-frame origin, so no conversion is needed beyond the
-  reordering.
-* Robustness (drake 1.51.1): in multi-body tosses Drake crashed with a segmentation fault in the broad phase
-  (GeometryState::FinalizePoseUpdate), at random, after 5-60 tosses, when one context served toss after toss, when
-  parameters were swapped into a built context (SceneGraph.AssignRole), and, less often, when convex hulls met convex
-  hulls. Each parameter set got its own diagram (DrakeWorld keeps the last few; a build costs 6 ms), every toss
-  starts from a clone of that diagram's template context (0.3 ms) and box-shaped hulls are Boxes (hull_shape): sixty
-  three-cube tosses with one parameter set then ran through in 6 runs of 7, and a search's changing parameters still
-  crashed within 8-41 candidates. DrakeEngine therefore refuses multi-body scenes (NotApplicable: a sweep skips the
-  job with one line); DrakeWorld itself still builds them, for what single tosses show. Single-body scenes never
-  crashed (over 200,000 tosses of identification).
+  reordering (and normalizing the quaternion, which Drake's discrete step lets drift off unit length).
+
+Hinges (recordings version 2 ``joints``)
+----------------------------------------
+* A hinge j is a RevoluteJoint ``hinge<j>`` from a frame at the parent's anchor to one at the child's, both parallel
+  to their bodies' mesh frames, about the recorded axis: the child's frame is the parent's turned by the joint angle,
+  as the recordings define it, and the anchors coincide by construction. Its damping is the joint's own (Drake
+  applies it implicitly in the discrete step) and its range Drake's joint limits. The base of each tree of bodies is
+  free; a toss starts from the base's pose and velocity and each joint's angle and rate
+  (kinematics.hinge_coordinates), and every child's mesh-frame pose and world velocity are read back from its
+  parent's and the joint's state (kinematics.hinge_child, exact Drake kinematics).
+* Joint Coulomb friction (``Joint.friction``, N m): Drake's discrete plant has none, so JointFriction (a LeafSystem
+  on the plant's applied generalized force input) applies, against each joint's rate, the torque that would stop the
+  joint within one step, capped at the friction: Coulomb friction regularized over rates below f h (M⁻¹)_jj. A force
+  evaluated at the start of the step, as the plant's inputs are, chatters about zero rate with a sharper
+  regularization; this one lets a joint under torques below f stick.
+* A hinge's two links collide with each other (Drake's default filter between bodies adjacent through a joint is off:
+  new_plant), since the elbow's bars touch when it folds.
+* ``DrakeParameters.articulation`` (sim/articulation.py), when not None, replaces the joints' damping and friction
+  and scales every body's inertia: the world simulates ``articulated(scene, articulation)``.
+
+Robustness (drake 1.51.1)
+-------------------------
+In multi-body tosses Drake crashes its process with a segmentation fault in the broad phase
+(GeometryState::FinalizePoseUpdate), at random: when one context served toss after toss, when parameters were swapped
+into a built context (SceneGraph.AssignRole), less often with a diagram per parameter set, and in every search of
+changing candidates (three cubes with random parameter sets, whether or not old diagrams are destroyed; a toss that
+crashed ran through when run again alone in a fresh process). Each parameter set gets its own diagram (DrakeWorld
+keeps the last few), every toss starts from a clone of that diagram's template context and box-shaped hulls are
+Boxes (hull_shape), which make crashes rarer; what makes them harmless is that DrakeWorld says ``in_process = False``:
+sim/stepped.SteppedRollouts then runs every toss in worker processes, even with one thread, and a crashed worker costs
+only the tosses it ran, each run again in a fresh process (NaN, an unstable candidate, only where a toss kills a
+fresh process of its own).
 """
 
 from __future__ import annotations
@@ -69,6 +92,7 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 from pydrake.geometry import (
@@ -93,16 +117,18 @@ from pydrake.multibody.plant import (
     DiscreteContactApproximation,
     MultibodyPlant,
 )
-from pydrake.multibody.tree import RotationalInertia, SpatialInertia
+from pydrake.multibody.tree import FixedOffsetFrame, RevoluteJoint, RotationalInertia, SpatialInertia
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from scipy.spatial import ConvexHull
 
 from contactbench.errors import ContactbenchError, NotApplicable
+from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
 from contactbench.rotations import normalize
-from contactbench.sim.engines import Dimension, Engine, require_flat
+from contactbench.sim.articulation import Articulation, articulated
+from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
 from contactbench.values import freeze_numbers
 
@@ -133,9 +159,10 @@ class DrakeParameters:
     hunt_crossley_dissipation: float  # s/m
     contact_model: str = "point"  # "point" or "hydroelastic"
     hydroelastic_modulus: float = DRAKE_DEFAULT_HYDROELASTIC_MODULUS  # Pa, every body; hydroelastic contact only
+    articulation: Articulation | None = None  # hinged scenes: joint damping, friction and inertia; None: as recorded
 
     def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction",), skip=("contact_model",))
+        freeze_numbers(self, vectors=("object_friction",), skip=("contact_model", "articulation"))
         frictions = self.object_friction + (self.floor_friction,)
         if self.contact_model not in CONTACT_MODELS:
             raise ContactbenchError(f"Drake contact_model must be one of {CONTACT_MODELS}, got {self.contact_model!r}")
@@ -194,6 +221,9 @@ def new_plant(scene: Scene, substeps: int, contact_model: str) -> tuple[DiagramB
     plant.mutable_gravity_field().set_gravity_vector(scene.gravity)
     # Without sampled output ports the state is q and v alone: setting them resets a toss completely.
     plant.SetUseSampledOutputPorts(False)
+    # A hinge's links collide with each other (the elbow's bars touch when it folds); our own filters keep a body's
+    # vertex spheres off its hull, which is all the plant's filter of adjacent bodies would do besides.
+    plant.set_adjacent_bodies_collision_filters(False)
     return builder, plant, scene_graph
 
 
@@ -232,9 +262,10 @@ def hull_shape(scene: Scene, k: int, contact_model: str) -> tuple[RigidTransform
 
 
 def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, parameters: DrakeParameters) -> None:
-    """The scene's free bodies (body<k>) with their convex hulls, their hull vertices for point contact with the
-    floor (body<k>_vertices, welded to body<k>), the floor (a half space on a body welded to the world) and the
-    collision filters that make hulls meet hulls and vertices meet the floor only (see the module docstring)."""
+    """The scene's bodies (body<k>) with their convex hulls, their hull vertices for point contact with the floor
+    (body<k>_vertices, welded to body<k>), its hinges (add_hinges; every other body is free), the floor (a half space
+    on a body welded to the world) and the collision filters that make hulls meet hulls and vertices meet the floor
+    only (see the module docstring)."""
     hulls, vertices = [], []
     for k in range(scene.n_bodies):
         rigid_body = plant.AddRigidBody(f"body{k}", spatial_inertia(scene, k))
@@ -250,6 +281,7 @@ def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, para
                         corners, RigidTransform(vertex), Sphere(VERTEX_RADIUS), f"body{k}_vertex{i}", properties
                     )
                 )
+    add_hinges(plant, scene)
     floor_body = plant.AddRigidBody("floor", SpatialInertia.Zero())
     plant.WeldFrames(plant.world_frame(), floor_body.body_frame(), RigidTransform([0.0, 0.0, scene.floor_z]))
     floor = plant.RegisterCollisionGeometry(
@@ -264,27 +296,90 @@ def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, para
         )
 
 
-class _Simulation:
-    """One finalized diagram of the scene for one parameter set, its simulator and where each body's state lies."""
+def add_hinges(plant: MultibodyPlant, scene: Scene) -> None:
+    """Each hinge j as RevoluteJoint hinge<j> between frames at the two anchors, parallel to the bodies' frames, about
+    the hinge's axis, with its damping and range (Drake's own joint limits)."""
+    for j, joint in enumerate(scene.joints):
+        frames = [
+            plant.AddFrame(
+                FixedOffsetFrame(
+                    f"hinge{j}_on_body{k}", plant.GetBodyByName(f"body{k}").body_frame(), RigidTransform(anchor)
+                )
+            )
+            for k, anchor in ((joint.parent, joint.parent_anchor), (joint.child, joint.child_anchor))
+        ]
+        low, high = joint.range if joint.range is not None else (-np.inf, np.inf)
+        plant.AddJoint(RevoluteJoint(f"hinge{j}", *frames, joint.axis, low, high, joint.damping))
 
-    def __init__(self, builder: DiagramBuilder, plant: MultibodyPlant, n_bodies: int, frame_steps: int):
+
+class JointFriction(LeafSystem):
+    """Coulomb friction of the hinges as a generalized force on the plant's applied-force input: against each joint's
+    rate, the torque that stops the joint within one step, at most its friction f. That is Coulomb friction
+    regularized over rates below f h (M⁻¹)_jj (h the plant's step, M the mass matrix at the step's start), the
+    sharpest regularization that lets a joint under torques below f stick instead of chattering: the plant reads this
+    input at the start of each step. Drake's discrete plant has no joint Coulomb friction of its own."""
+
+    def __init__(self, plant: MultibodyPlant, rate_index: np.ndarray, frictions: np.ndarray):
+        LeafSystem.__init__(self)
+        self._plant, self._plant_context = plant, plant.CreateDefaultContext()
+        self._rate_index, self._frictions = rate_index, frictions
+        self._n_positions, self._step = plant.num_positions(), plant.time_step()
+        self._state = self.DeclareVectorInputPort("state", plant.num_positions() + plant.num_velocities())
+        self.DeclareVectorOutputPort("generalized_force", plant.num_velocities(), self._generalized_force)
+
+    def _generalized_force(self, context, output) -> None:
+        state = self._state.Eval(context)
+        self._plant.SetPositionsAndVelocities(self._plant_context, state)
+        mobility = np.linalg.inv(self._plant.CalcMassMatrix(self._plant_context)).diagonal()[self._rate_index]
+        rates = state[self._n_positions + self._rate_index]
+        force = np.zeros(self._plant.num_velocities())
+        force[self._rate_index] = -np.clip(rates / (self._step * mobility), -self._frictions, self._frictions)
+        output.SetFromVector(force)
+
+
+def add_joint_friction(builder: DiagramBuilder, plant: MultibodyPlant, frictions: list[float]) -> None:
+    """JointFriction of the finalized plant's hinges hinge<j> (none where every friction is 0)."""
+    if not any(frictions):
+        return
+    rate_index = np.array([plant.GetJointByName(f"hinge{j}").velocity_start() for j in range(len(frictions))])
+    friction = builder.AddSystem(JointFriction(plant, rate_index, np.asarray(frictions, dtype=np.float64)))
+    builder.Connect(plant.get_state_output_port(), friction.get_input_port(0))
+    builder.Connect(friction.get_output_port(0), plant.get_applied_generalized_force_input_port())
+
+
+class _Simulation:
+    """One finalized diagram of the scene for one parameter set, its simulator and where each body's state lies: a
+    free body's pose and velocity in its floating joint's, a hinge's child as the joint's angle and rate."""
+
+    def __init__(self, builder: DiagramBuilder, plant: MultibodyPlant, scene: Scene, frame_steps: int):
         self.plant = plant
         self.diagram = builder.Build()
         self.simulator = Simulator(self.diagram)
         # Every toss starts from a clone of this context (see "Robustness" in the module docstring).
         self.template = self.diagram.CreateDefaultContext()
-        bodies = [plant.GetBodyByName(f"body{k}") for k in range(n_bodies)]
-        # Indices into q of each body's pose (x, y, z, qw, qx, qy, qz) and into v of its (v, ω).
+        self.n_bodies, self.joints = scene.n_bodies, scene.joints
+        children = {joint.child for joint in self.joints}
+        self.free = np.array([k for k in range(scene.n_bodies) if k not in children], dtype=np.int64)
+        bodies = [plant.GetBodyByName(f"body{k}") for k in self.free]
+        # Indices into q of each free body's pose (x, y, z, qw, qx, qy, qz) and into v of its (v, ω).
         self.pose_index = np.array([b.floating_positions_start() + np.r_[4:7, 0:4] for b in bodies])
         self.velocity_index = np.array([b.floating_velocities_start_in_v() + np.r_[3:6, 0:3] for b in bodies])
+        hinges = [plant.GetJointByName(f"hinge{j}") for j in range(len(self.joints))]
+        self.angle_index = np.array([hinge.position_start() for hinge in hinges], dtype=np.int64)
+        self.rate_index = np.array([hinge.velocity_start() for hinge in hinges], dtype=np.int64)
         self.step = plant.time_step()
         self.frame_steps = frame_steps
 
     def toss(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
         n_positions = self.plant.num_positions()
         q, v = np.zeros(n_positions), np.zeros(self.plant.num_velocities())
-        q[self.pose_index] = np.concatenate([poses0[:, :3], normalize(poses0[:, 3:])], axis=-1)
-        v[self.velocity_index] = velocities0
+        poses0 = np.concatenate([poses0[:, :3], normalize(poses0[:, 3:])], axis=-1)
+        q[self.pose_index] = poses0[self.free]
+        v[self.velocity_index] = velocities0[self.free]
+        for joint, angle_at, rate_at in zip(self.joints, self.angle_index, self.rate_index):
+            q[angle_at], v[rate_at] = hinge_coordinates(
+                poses0[joint.parent], velocities0[joint.parent], poses0[joint.child], velocities0[joint.child], joint
+            )
         self.simulator.reset_context(self.template.Clone())
         context = self.simulator.get_mutable_context()
         plant_context = self.plant.GetMyMutableContextFromRoot(context)
@@ -300,11 +395,26 @@ class _Simulation:
             if not np.abs(state).max() < DIVERGED:
                 break
             states[frame] = state
-        return states[:, self.pose_index], states[:, n_positions + self.velocity_index]
+        poses, velocities = np.full((n_steps, self.n_bodies, 7), np.nan), np.full((n_steps, self.n_bodies, 6), np.nan)
+        free_poses = states[:, self.pose_index]
+        # Drake's discrete step lets a free body's quaternion drift off unit length; a hinge's child is placed by it.
+        poses[:, self.free] = np.concatenate([free_poses[..., :3], normalize(free_poses[..., 3:])], axis=-1)
+        velocities[:, self.free] = states[:, n_positions + self.velocity_index]
+        for joint, angle_at, rate_at in zip(self.joints, self.angle_index, self.rate_index):  # parents first
+            poses[:, joint.child], velocities[:, joint.child] = hinge_child(
+                poses[:, joint.parent],
+                velocities[:, joint.parent],
+                joint,
+                states[:, angle_at],
+                states[:, n_positions + rate_at],
+            )
+        return poses, velocities
 
 
 class DrakeWorld(World):
     """Drake's simulation of a scene: one diagram per parameter set, the last few kept."""
+
+    in_process = False  # drake 1.51.1 may crash its process (see "Robustness" in the module docstring)
 
     def __init__(self, scene: Scene, substeps: int = 1, scene_file: str | Path | None = None):
         """A world built from the scene; with `scene_file` (an SDFormat file of scene_file's kind, meshes beside it),
@@ -320,13 +430,17 @@ class DrakeWorld(World):
         if key in self._simulations:
             self._simulations.move_to_end(key)
             return self._simulations[key]
-        builder, plant, scene_graph = new_plant(self.scene, self.substeps, parameters.contact_model)
+        scene = articulated(self.scene, parameters.articulation) if self.scene_file is None else self.scene
+        builder, plant, scene_graph = new_plant(scene, self.substeps, parameters.contact_model)
         if self.scene_file is None:
-            add_scene(plant, scene_graph, self.scene, parameters)
+            add_scene(plant, scene_graph, scene, parameters)
+            frictions = [joint.friction for joint in scene.joints]
         else:
             Parser(plant).AddModels(str(self.scene_file))
+            frictions = sdf_joint_frictions(self.scene_file, len(scene.joints))
         plant.Finalize()
-        self._simulations[key] = _Simulation(builder, plant, self.scene.n_bodies, self.substeps)
+        add_joint_friction(builder, plant, frictions)
+        self._simulations[key] = _Simulation(builder, plant, scene, self.substeps)
         if len(self._simulations) > SIMULATIONS_KEPT:
             self._simulations.popitem(last=False)
         return self._simulations[key]
@@ -378,9 +492,12 @@ def _filter_group(name: str, members: list[str], ignored: list[str]) -> str:
 
 def scene_sdf(scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> str:
     """SDFormat text of what add_scene builds, with these parameters; it refers to body k's mesh as
-    meshes/body<k>.obj."""
+    meshes/body<k>.obj. A hinge is a revolute joint hinge<j> with its damping and its Coulomb friction in
+    <dynamics><friction>, which Drake's parser does not apply: DrakeWorld reads it back (sdf_joint_frictions)."""
     if len(parameters.object_friction) != scene.n_bodies:
         raise ContactbenchError(f"{len(parameters.object_friction)} object frictions for {scene.n_bodies} bodies")
+    scene = articulated(scene, parameters.articulation)
+    parent_of = {joint.child: joint for joint in scene.joints}
     point = parameters.contact_model == "point"
     body_extra, floor_extra = "", ""
     if not point:
@@ -413,8 +530,15 @@ def scene_sdf(scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> s
             if box is None
             else f"<box><size>{_xml_numbers(box[1])}</size></box>"
         )
+        # A hinge's child sits where angle 0 puts it; the state of a toss places every body anyway.
+        placed = (
+            f'<pose relative_to="body{parent_of[k].parent}">'
+            f"{_xml_numbers(parent_of[k].parent_anchor - parent_of[k].child_anchor)} 0 0 0</pose>"
+            if k in parent_of
+            else ""
+        )
         links.append(
-            f'<link name="body{k}"><inertial><pose>{_xml_numbers(com)} 0 0 0</pose>'
+            f'<link name="body{k}">{placed}<inertial><pose>{_xml_numbers(com)} 0 0 0</pose>'
             f"<mass>{_xml_numbers(scene.bodies[k].mass)}</mass><inertia>{moments}</inertia></inertial>"
             f"{_collision_xml(f'body{k}', hull_pose, hull, friction, stiffness, parameters, body_extra)}</link>"
         )
@@ -432,10 +556,18 @@ def scene_sdf(scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> s
                 for i, vertex in enumerate(hull_vertices(scene, k))
             )
             links.append(
-                f'<link name="body{k}_vertices">{massless}{spheres}</link>'
+                f'<link name="body{k}_vertices"><pose relative_to="body{k}"/>{massless}{spheres}</link>'
                 f'<joint name="body{k}_vertices_weld" type="fixed"><parent>body{k}</parent>'
                 f"<child>body{k}_vertices</child></joint>"
             )
+    for j, joint in enumerate(scene.joints):
+        limits = "" if joint.range is None else f"<lower>{joint.range[0]!r}</lower><upper>{joint.range[1]!r}</upper>"
+        links.append(
+            f'<joint name="hinge{j}" type="revolute"><pose>{_xml_numbers(joint.child_anchor)} 0 0 0</pose>'
+            f"<parent>body{joint.parent}</parent><child>body{joint.child}</child><axis><xyz>{_xml_numbers(joint.axis)}"
+            f"</xyz><limit>{limits}<effort>0</effort></limit><dynamics><damping>{joint.damping!r}</damping>"
+            f"<friction>{joint.friction!r}</friction></dynamics></axis></joint>"
+        )
     floor = _collision_xml(
         "floor",
         np.zeros(3),
@@ -461,8 +593,9 @@ def scene_sdf(scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> s
             '<?xml version="1.0"?>',
             f"<!-- {scene.name}: the plant is discrete with time_step {float(scene.dt / substeps)!r} s, gravity "
             f"{_xml_numbers(scene.gravity)} m/s^2, {parameters.contact_model} contact, discrete contact approximation "
-            f"{DISCRETE_CONTACT_APPROXIMATION.name}: SDFormat carries none of these (contactbench.sim.drake_engine."
-            "new_plant sets them). The meshes are in meshes/ beside this file. -->",
+            f"{DISCRETE_CONTACT_APPROXIMATION.name}, hinged links colliding with each other: SDFormat carries none "
+            "of these (contactbench.sim.drake_engine.new_plant sets them), and Drake applies no joint <friction> "
+            "(drake_engine.add_joint_friction does). The meshes are in meshes/ beside this file. -->",
             '<sdf version="1.9" xmlns:drake="http://drake.mit.edu">',
             '<model name="scene">',
             *links,
@@ -473,6 +606,12 @@ def scene_sdf(scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> s
             "</sdf>",
         ]
     )
+
+
+def sdf_joint_frictions(path: str | Path, n_joints: int) -> list[float]:
+    """The Coulomb friction (N m) of hinges hinge0..hinge<n_joints - 1> in a scene_sdf file."""
+    joints = {joint.get("name"): joint for joint in ElementTree.parse(path).getroot().iter("joint")}
+    return [float(joints[f"hinge{j}"].findtext("axis/dynamics/friction", "0")) for j in range(n_joints)]
 
 
 class DrakeEngine(Engine):
@@ -513,11 +652,18 @@ class DrakeEngine(Engine):
         }
 
     def check_scene(self, scene: Scene) -> None:
-        require_flat(scene, "Drake")
-        if scene.n_bodies > 1:
+        missing = [
+            what
+            for what, present in (
+                ("static terrain", scene.static),
+                ("non-convex bodies (pieces)", not all(scene.is_convex(k) for k in range(scene.n_bodies))),
+            )
+            if present
+        ]
+        if missing:
             raise NotApplicable(
-                f"the Drake engine simulates single-body scenes; {scene.name} has {scene.n_bodies} bodies (drake "
-                "1.51.1 crashed with a segmentation fault at random in body-body contact, see sim/drake_engine.py)"
+                f"the Drake engine simulates convex bodies, free or hinged, on the flat floor; {scene.name} has "
+                f"{' and '.join(missing)} (model=sysid and mujoco_default simulate those)"
             )
 
     def rollouts(self, scene: Scene, nthread: int | None = None, substeps: int = 1) -> SteppedRollouts:

@@ -5,14 +5,16 @@ the train tosses, each simulated in MJX from its recorded state, the gradient of
 differentiation (`jax.jacfwd`: MJX's Newton solver runs a `while_loop`, which reverse mode cannot differentiate,
 and the parameters are few). Every `val_every` steps the C-MuJoCo val objective, the one `sysid` selects with,
 scores the current parameters; the best is kept. MJX detects mesh-plane contacts differently from C MuJoCo (up to 4
-contacts where C has 3; docs/DIFFERENTIABLE.md), so MJX gives directions only: never a score.
+contacts where C has 3; docs/DIFFERENTIABLE.md), so MJX gives directions only: never a score. A hinged scene adds
+each hinge's damping and friction loss and the links' inertia scale (sim/articulation.py) to the search; a scene
+MJX's put_model refuses is NotApplicable (sim/mjx.py: require_mjx).
 
 With `window_frames: null` the windows are whole tosses from their context (the val objective's rollouts);
 `truncation: N` then cuts the gradient's path through the state every N frames (sim/mjx.py: truncated).
 
 The parameters are searched in box coordinates: each is lo + (hi - lo) * sigmoid(u) (the stiffness in log space),
 so every step stays inside Table 2c's domain, and the search starts where NGOpt's does (the domain's centre,
-damping 50).
+damping 50; an articulation dimension a little inside its bound: inside_start).
 """
 
 from __future__ import annotations
@@ -29,13 +31,17 @@ from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpo
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
 from contactbench.recordings import Recordings, Split
-from contactbench.sim import engines
-from contactbench.sim.mjx import import_mjx, pose_loss, truncated
-from contactbench.sim.mujoco_scene import build_model, pack_state
+from contactbench.sim import articulation
+from contactbench.sim.engines import Dimension
+from contactbench.sim.mjx import import_mjx, inertia_constants, pose_loss, require_mjx, truncated
+from contactbench.sim.mujoco_scene import StateLayout, build_model
 
 log = logging.getLogger(__name__)
 
 ADAM_BETAS = (0.9, 0.999)
+# The fraction of an articulation dimension's range its start keeps from either bound (inside_start); the floor
+# damping's start (50 of 0-1000) sits as far inside its own range.
+START_MARGIN = 0.05
 
 
 def decayed(lr: float, step: int, steps: int) -> float:
@@ -55,15 +61,29 @@ def adam_step(
 
 
 class BoxCoordinates:
-    """SearchSpace vectors (per-object friction, floor friction, stiffness, damping) <-> unbounded coordinates u."""
+    """SearchSpace vectors (per-object friction, floor friction, stiffness, damping, then a hinged scene's joint
+    dampings, joint frictions and inertia scale) <-> unbounded coordinates u."""
 
     def __init__(self, space: SearchSpace):
         k = space.n_bodies
-        self.low = np.array([space.friction[0]] * (k + 1) + [np.log(space.stiffness[0]), space.damping[0]])
-        self.high = np.array([space.friction[1]] * (k + 1) + [np.log(space.stiffness[1]), space.damping[1]])
-        self.logarithmic = np.arange(k + 3) == k + 1
+        hinges = articulation.dimensions(space.n_joints)
+        self.low = np.array(
+            [space.friction[0]] * (k + 1)
+            + [np.log(space.stiffness[0]), space.damping[0]]
+            + [np.log(d.low) if d.log else d.low for d in hinges]
+        )
+        self.high = np.array(
+            [space.friction[1]] * (k + 1)
+            + [np.log(space.stiffness[1]), space.damping[1]]
+            + [np.log(d.high) if d.log else d.high for d in hinges]
+        )
+        self.logarithmic = np.array([i == k + 1 for i in range(k + 3)] + [d.log for d in hinges], dtype=bool)
         self.start = self.to_coordinates(
-            np.array([np.mean(space.friction)] * (k + 1) + [np.sqrt(np.prod(space.stiffness)), space.initial_damping])
+            np.array(
+                [np.mean(space.friction)] * (k + 1)
+                + [np.sqrt(np.prod(space.stiffness)), space.initial_damping]
+                + [inside_start(d) for d in hinges]
+            )
         )
 
     def to_vector(self, coordinates, xp=np):
@@ -75,6 +95,18 @@ class BoxCoordinates:
         inside = np.where(self.logarithmic, np.log(vector), vector)
         fraction = np.clip((inside - self.low) / (self.high - self.low), 1e-9, 1 - 1e-9)
         return np.log(fraction / (1 - fraction))
+
+
+def inside_start(dimension: Dimension) -> float:
+    """Where the descent starts in an articulation dimension: NGOpt's start (its init), moved at least START_MARGIN of
+    the range inside it. A sigmoid passes no gradient at its bounds, and joint damping and friction start at 0."""
+    if dimension.log:
+        low, high, init = np.log([dimension.low, dimension.high, dimension.init])
+    else:
+        low, high, init = dimension.low, dimension.high, dimension.init
+    margin = START_MARGIN * (high - low)
+    start = float(np.clip(init, low + margin, high - margin))
+    return float(np.exp(start)) if dimension.log else start
 
 
 class MjxWindows:
@@ -96,35 +128,23 @@ class MjxWindows:
         self.context_frames, self.window_frames, self.substeps = context_frames, window_frames, substeps
         # whole tosses: every frame after the context, each toss scored on its own frames (the val objective's form)
         horizon = window_frames or dataset.split("train").n_frames - context_frames
-        model = build_model(
-            dataset.scene, space.from_vector(self.coordinates.to_vector(self.coordinates.start)), substeps
-        )
-        body_of_geom = model.geom_bodyid - 1  # recordings body index (-1: the floor); flat scenes pair only the floor
-        pair_body = np.maximum(body_of_geom[model.pair_geom1], body_of_geom[model.pair_geom2])
-        geom_body = np.maximum(body_of_geom, 0)
-        is_body_geom = body_of_geom >= 0
-        reference = mjx.put_model(model)
+        start = space.from_vector(self.coordinates.to_vector(self.coordinates.start))
+        model = build_model(dataset.scene, start, substeps)
+        self.layout = StateLayout.of(dataset.scene, model)
+        simulated = parametrized(model, mjx.put_model(model), space, self.coordinates, jnp, mjx)
         widths = jnp.asarray(dataset.widths())
-        n_bodies, exponent = dataset.n_bodies, position_exponent
-        to_vector = self.coordinates.to_vector
+        exponent = position_exponent
+        bodies = np.array([model.body(f"body{k}").id for k in range(dataset.n_bodies)])
+        free = self.layout.free
 
-        def simulated(coordinates):
-            vector = to_vector(coordinates, jnp)
-            objects, floor = vector[:n_bodies], vector[n_bodies]
-            sliding = jnp.maximum(objects[pair_body], floor)
-            return reference.replace(
-                pair_friction=reference.pair_friction.at[:, 0].set(sliding).at[:, 1].set(sliding),
-                pair_solref=jnp.stack(
-                    [
-                        -vector[n_bodies + 1] * jnp.ones(len(pair_body)),
-                        -vector[n_bodies + 2] * jnp.ones(len(pair_body)),
-                    ],
-                    axis=-1,
-                ),
-                geom_friction=reference.geom_friction.at[:, 0].set(
-                    jnp.where(is_body_geom, objects[geom_body], reference.geom_friction[:, 0])
-                ),
-            )
+        def observed(model, data):
+            """The frame's poses [K, 7]. A free scene's qpos is its recordings poses; a hinged one's are the bodies'
+            frames (body frame = mesh frame), which mjx.step leaves at the step's start: kinematics brings them to
+            its end."""
+            if free:
+                return data.qpos
+            data = mjx.kinematics(model, data)
+            return jnp.concatenate([data.xpos[bodies], data.xquat[bodies]], axis=-1)
 
         def rollout(model, qpos, qvel):
             data = mjx.make_data(model).replace(qpos=qpos, qvel=qvel)
@@ -132,14 +152,18 @@ class MjxWindows:
             def frame(data, index):
                 data = truncated(jax, data, index, truncation)
                 data = jax.lax.fori_loop(0, substeps, lambda _, d: mjx.step(model, d), data)
-                return data, data.qpos
+                return data, observed(model, data)
 
-            return jax.lax.scan(frame, data, jnp.arange(horizon))[1]  # [W, 7K]
+            return jax.lax.scan(frame, data, jnp.arange(horizon))[1]  # [W, 7K] or [W, K, 7]
+
+        def poses(coordinates, qpos, qvel):
+            model = simulated(coordinates)
+            return jax.vmap(rollout, in_axes=(None, 0, 0))(model, qpos, qvel).reshape(
+                len(qpos), horizon, dataset.n_bodies, 7
+            )
 
         def loss(coordinates, qpos, qvel, truth, scored):
-            model = simulated(coordinates)
-            poses = jax.vmap(rollout, in_axes=(None, 0, 0))(model, qpos, qvel).reshape(truth.shape)
-            return pose_loss(jnp, poses, truth, scored, widths, exponent)
+            return pose_loss(jnp, poses(coordinates, qpos, qvel), truth, scored, widths, exponent)
 
         def value_and_gradient(coordinates, qpos, qvel, truth, scored):
             def twice(coordinates):  # the loss as jacfwd's aux too: one primal pass serves both
@@ -150,6 +174,7 @@ class MjxWindows:
             return value, gradient
 
         self._value_and_gradient = jax.jit(value_and_gradient)
+        self._poses = jax.jit(poses)
 
     def windows(self, split: Split, dt: float, count: int, rng: np.random.Generator):
         """`count` windows: MJX's initial states (from the context, as the protocol makes them), the recorded frames
@@ -179,13 +204,65 @@ class MjxWindows:
             )
             scored = np.ones((count, self.window_frames), dtype=bool)
         initial = make_context(window, dt, context)
-        qpos, qvel = pack_state(initial.poses[:, -1], initial.velocities[:, -1])
+        qpos, qvel = self.layout.pack(initial.poses[:, -1], initial.velocities[:, -1])
         truth = np.where(scored[..., None, None], window.poses[:, context:], 0.0)  # frames past the end: unscored
         return qpos, qvel, truth, scored
 
     def value_and_gradient(self, coordinates: np.ndarray, windows) -> tuple[float, np.ndarray]:
         value, gradient = self._value_and_gradient(self.jnp.asarray(coordinates), *map(self.jnp.asarray, windows))
         return float(value), np.asarray(gradient, dtype=np.float64)
+
+    def poses(self, coordinates: np.ndarray, windows) -> np.ndarray:
+        """MJX's poses [W, T, K, 7] over the windows' frames (compiled apart from the gradient, on first use)."""
+        qpos, qvel = windows[:2]
+        return np.asarray(self._poses(*map(self.jnp.asarray, (coordinates, qpos, qvel))), dtype=np.float64)
+
+
+def parametrized(model, reference, space: SearchSpace, coordinates: BoxCoordinates, jnp, mjx):
+    """coordinates -> the MJX model `reference` (put from the compiled `model`) with those parameters, as
+    scene_xml writes them: a pair with the ground (floor, static meshes, height fields) takes max(object, floor)
+    friction and the floor's solref, a pair of hinged links the larger of their frictions and MuJoCo's default
+    solref, and each geom its body's friction (body-body contacts). A hinged scene also sets each hinge's damping and
+    friction loss and scales the links' inertia, with the constants MuJoCo's compiler derives from the inertia."""
+    n_bodies, n_joints = space.n_bodies, space.n_joints
+    body_of_geom = model.geom_bodyid - 1  # recordings body index (-1: the world's ground geoms)
+    first, second = body_of_geom[model.pair_geom1], body_of_geom[model.pair_geom2]
+    grounded = np.minimum(first, second) < 0
+    pair_body = np.maximum(first, second)
+    geom_body = np.maximum(body_of_geom, 0)
+    is_body_geom = body_of_geom >= 0
+    hinge_dofs = np.array([model.joint(f"hinge{j}").dofadr[0] for j in range(n_joints)], dtype=int)
+    reference_scale = space.from_vector(coordinates.to_vector(coordinates.start)).articulation
+    reference_scale = 1.0 if reference_scale is None else reference_scale.inertia_scale
+    constants = inertia_constants(model, jnp, mjx)
+
+    def simulated(u):
+        vector = coordinates.to_vector(u, jnp)
+        objects, floor = vector[:n_bodies], vector[n_bodies]
+        sliding = jnp.where(
+            grounded,
+            jnp.maximum(objects[pair_body], floor),
+            jnp.maximum(objects[np.maximum(first, 0)], objects[np.maximum(second, 0)]),
+        )
+        floor_solref = jnp.stack([-vector[n_bodies + 1], -vector[n_bodies + 2]])
+        changed = reference.replace(
+            pair_friction=reference.pair_friction.at[:, 0].set(sliding).at[:, 1].set(sliding),
+            pair_solref=jnp.where(grounded[:, None], floor_solref[None, :], reference.pair_solref),
+            geom_friction=reference.geom_friction.at[:, 0].set(
+                jnp.where(is_body_geom, objects[geom_body], reference.geom_friction[:, 0])
+            ),
+        )
+        if not n_joints:
+            return changed
+        hinges = vector[n_bodies + 3 :]
+        changed = changed.replace(
+            dof_damping=changed.dof_damping.at[hinge_dofs].set(hinges[:n_joints]),
+            dof_frictionloss=changed.dof_frictionloss.at[hinge_dofs].set(hinges[n_joints : 2 * n_joints]),
+            body_inertia=changed.body_inertia * (hinges[2 * n_joints] / reference_scale),  # the world's is 0
+        )
+        return changed.replace(**constants(changed))
+
+    return simulated
 
 
 class GradientSysIDModule(IdentifiedModule):
@@ -214,7 +291,7 @@ class GradientSysIDModule(IdentifiedModule):
     ):
         if engine != "mujoco":
             raise ContactbenchError(f"model.module.engine is {engine!r} (expected mujoco: MJX is MuJoCo's port)")
-        engines.require_flat(dataset.scene, "MJX")
+        require_mjx(dataset.scene)
         super().__init__(dataset, engine)
         require_positive_integers(
             {"steps": steps, "windows": windows, "window_frames": window_frames, "truncation": truncation},
