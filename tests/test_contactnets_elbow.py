@@ -9,10 +9,11 @@ import zipfile
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
 
-from contactbench import contactnets_elbow, kinematics, metrics, rotations
+from contactbench import contactnets_elbow, kinematics, metrics, rotations, runs
 from contactbench.config import CONFIG_DIR
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
 
 SHIPPED = CONFIG_DIR.parent / "assets" / "contactnets_elbow"
@@ -147,3 +148,36 @@ def test_a_recording_whose_hinge_anchors_part_is_refused_naming_the_file_and_the
     with pytest.raises(RecordingsError, match=r"val\.npz \(being written\): field 'poses': trajectory 3, frame 10"):
         write_recordings(tmp_path / "twisted", twisted)
     assert not (tmp_path / "twisted").exists()
+
+
+@pytest.mark.slow
+def test_every_model_runs_on_the_elbow_at_smoke_or_refuses_it_in_one_line(shipped, tmp_path):
+    """train.py at budget=smoke on a few of the real elbow's tosses, loaded as a user's folder: every engine, untuned
+    and identified with its hinge, and the GNN fit and score it, keeping the hinge; the hybrid and the paper's GNN
+    refuse in one line (sysid_mjx: tests/test_sysid_mjx.py, which shares its compiled functions)."""
+    few = shipped.for_models(["train", "val", "test"])
+    few.splits = {name: split.select(range(4)) for name, split in few.splits.items()}
+    folder = write_recordings(tmp_path / "elbow", few)
+    overrides = [
+        "dataset=recordings",
+        f"recordings={folder}",
+        "budget=smoke",
+        "test=true",
+        f"paths.log_dir={tmp_path}/outputs",
+    ]
+
+    def config(model: str):
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            return compose(config_name="train", overrides=[*overrides, f"model={model}"])
+
+    for model in ("mujoco_default", "bullet_default", "drake_default", "sysid", "sysid_bullet", "sysid_drake", "gnn"):
+        runs.train(config(model), tmp_path / model)
+        scored = json.loads((tmp_path / model / "test" / "metrics.json").read_text())
+        assert np.isfinite(scored["pos_err"]) and np.isfinite(scored["rot_err_rad"]), model
+        assert scored["joint_gap_m"] < 1e-6, model  # every model keeps the hinge
+        if model.startswith("sysid"):
+            fitted = json.loads((tmp_path / model / "fitted.json").read_text())
+            assert {"joint_damping_0", "joint_friction_0", "inertia_scale"} <= set(fitted["parameters"]), model
+    for model in ("hybrid", "gnn_paper"):
+        with pytest.raises(NotApplicable):
+            runs.train(config(model), tmp_path / model)
