@@ -5,7 +5,7 @@ BIN = $(VENV)/bin
 
 .PHONY: main test lint benchmarks matrix slurm-check
 
-# The embedded default, conf/experiment/main.yaml: one generated variant and the real cube, every model at
+# The embedded default, conf/experiment/main.yaml: one generated variant and the two real datasets (cube, elbow), every model at
 # budget=quick, scored on val and test, then one results table.
 main: $(VENV)/.installed
 	$(BIN)/python generate.py variant=frictioncubes_0.5

@@ -17,7 +17,8 @@ from pydrake.systems.analysis import Simulator
 
 from contactbench.config import REPO_ROOT
 from contactbench.recordings import read_recordings
-from contactbench.sim.drake_engine import DrakeEngine, DrakeParameters, add_scene, new_plant
+from contactbench.sim.drake_engine import DrakeEngine, add_scene, new_plant
+from contactbench.sim.drake_scene import DrakeParameters
 
 
 def bare_loop(scene, parameters: DrakeParameters, poses0: np.ndarray, velocities0: np.ndarray, frames: int):

@@ -20,7 +20,8 @@ from contactbench.models.sysid.search_space import search_space
 from contactbench.protocol import make_context
 from contactbench.recordings import FORMAT, SCENE_VERSION, Scene, read_recordings
 from contactbench.sim.articulation import Articulation
-from contactbench.sim.bullet_engine import BulletEngine, BulletParameters, BulletWorld
+from contactbench.sim.bullet_engine import BulletEngine, BulletWorld
+from contactbench.sim.bullet_scene import BulletParameters
 from contactbench.sim.engines import engine
 
 RIGID = BulletParameters(object_friction=(0.5,), restitution=(0.0,))

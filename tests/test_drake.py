@@ -16,7 +16,8 @@ from contactbench import kinematics, rotations  # noqa: E402
 from contactbench.errors import ContactbenchError, NotApplicable  # noqa: E402
 from contactbench.models.sysid.search_space import search_space  # noqa: E402
 from contactbench.sim.articulation import Articulation  # noqa: E402
-from contactbench.sim.drake_engine import DrakeEngine, DrakeParameters, DrakeWorld  # noqa: E402
+from contactbench.sim.drake_engine import DrakeEngine, DrakeWorld  # noqa: E402
+from contactbench.sim.drake_scene import DrakeParameters  # noqa: E402
 
 ENGINE = DrakeEngine()
 CUBE = box([-0.05] * 3, [0.05] * 3)

@@ -1,4 +1,5 @@
-"""PyBullet as an identifiable engine: contact parameters, a world of any recordings scene, URDF of the fitted scene.
+"""PyBullet as an identifiable engine: a world of any recordings scene (its parameters and bodies: bullet_scene.py;
+URDF of the fitted scene: bullet_urdf.py).
 
 Conventions
 -----------
@@ -18,22 +19,11 @@ Conventions
   child from its parent and its joint's state (`kinematics.hinge_child`), so the output keeps each hinge exactly.
 * PyBullet places and reports a body by its inertial frame (centre of mass, principal axes); recordings poses are the
   mesh frame's. A world converts at this boundary (`_to_inertial`, `_to_mesh`).
-
-Parameters (`BulletParameters`)
--------------------------------
-object_friction, restitution: per body (lateral Coulomb friction; Newton restitution of normal velocity).
-spinning_friction (m): torsional friction, a torque of spinning_friction x the normal force opposing spin about the
-normal; rolling_friction (m): the same against rolling. contact_stiffness (N/m) and contact_damping (N s/m): a
-compliant contact (PyBullet turns them into each step's ERP = h k / (h k + d) and CFM = 1 / (h k + d)); None (both)
-keeps PyBullet's own rigid contact, which resolves penetration by error reduction (what the generator uses).
-articulation: a hinged scene's joint damping and friction and inertia scale (sim/articulation.py); None: as recorded.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import pybullet
@@ -50,112 +40,19 @@ from contactbench.generation.bullet import (
     parking_spot,
     recorded_motion,
 )
-from contactbench.generation.scenes import BulletSettings
 from contactbench.kinematics import hinge_child, hinge_coordinates
-from contactbench.meshes import obj_text
 from contactbench.recordings import Joint, Scene
-from contactbench.sim.articulation import Articulation, articulated
+from contactbench.sim.articulation import articulated
+from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
+from contactbench.sim.bullet_urdf import scene_files
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
-from contactbench.values import freeze_numbers
 
-TABLE_2A = BulletSettings()
 # What a recordings hinge may say (RECORDINGS.md, version 2), all of which the world builds
 HINGE_FIELDS = frozenset(
     ("name", "type", "parent", "child", "parent_anchor", "child_anchor", "axis", "damping", "friction", "range")
 )
-CONTACT_MODES = (
-    "rigid",
-    "compliant",
-)  # the generator's engine settings: restitution threshold, floor friction and restitution
-
-
-@dataclass(frozen=True)
-class BulletParameters:
-    """PyBullet contact parameters of a scene (see the module docstring)."""
-
-    object_friction: tuple[float, ...]
-    restitution: tuple[float, ...]
-    spinning_friction: float = 0.0
-    rolling_friction: float = 0.0
-    contact_stiffness: float | None = None
-    contact_damping: float | None = None
-    articulation: Articulation | None = None
-
-    def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction", "restitution"), skip=("articulation",))
-        if len(self.object_friction) != len(self.restitution):
-            raise ContactbenchError(
-                f"{len(self.object_friction)} frictions and {len(self.restitution)} restitutions "
-                "(expected one per body)"
-            )
-        coefficients = self.object_friction + (self.spinning_friction, self.rolling_friction)
-        if not all(np.isfinite(coefficients)) or min(coefficients) < 0:
-            raise ContactbenchError(f"PyBullet friction coefficients must be finite and >= 0, got {self}")
-        if not all(0 <= r <= 1 for r in self.restitution):
-            raise ContactbenchError(f"PyBullet restitution must lie in [0, 1], got {self.restitution}")
-        if (self.contact_stiffness is None) != (self.contact_damping is None):
-            raise ContactbenchError("PyBullet contact_stiffness and contact_damping are given together or not at all")
-        if self.contact_stiffness is not None and not (
-            np.isfinite(self.contact_stiffness) and self.contact_stiffness > 0 and 0 <= self.contact_damping < np.inf
-        ):
-            raise ContactbenchError(
-                f"PyBullet contact stiffness must be > 0 and damping >= 0, finite, got {self.contact_stiffness}, "
-                f"{self.contact_damping}"
-            )
-
-
-def inertial_frames(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per body: centre of mass [K, 3] and principal axes [K, 4] (w-first) in the mesh frame, principal moments [K, 3].
-
-    Within 1e-9 of the origin and of diagonal (a generated scene's mesh frame) they are taken as exactly so, so that a
-    generated dataset's world is the generator's to the last bit."""
-    coms, axes, moments = [], [], []
-    for k in range(scene.n_bodies):
-        com, inertia = scene.inertial(k)
-        width = scene.body_mesh(k).width
-        com = np.where(np.abs(com) > 1e-9 * width, com, 0.0)
-        if np.abs(inertia - np.diag(np.diag(inertia))).max() <= 1e-9 * np.trace(inertia):
-            principal, rotation = np.diag(inertia).copy(), np.eye(3)
-        else:
-            principal, rotation = np.linalg.eigh(inertia)
-            rotation[:, 2] *= np.linalg.det(rotation)  # a proper rotation
-        coms.append(com)
-        axes.append(rotations.from_matrix(rotation))
-        moments.append(principal)
-    return np.array(coms), np.array(axes), np.array(moments)
-
-
-@dataclass(frozen=True)
-class Tree:
-    """A root body and the joints (indices into `Scene.joints`) of the bodies hanging from it, in PyBullet's link
-    order (link n turns on joints[n]); a free body is a tree without joints."""
-
-    root: int
-    joints: tuple[int, ...] = ()
-
-
-def trees(scene: Scene) -> tuple[Tree, ...]:
-    """The scene's trees of jointed bodies, in the order of their roots among the bodies."""
-    joints = scene.joints  # parents first
-    children = {joint.child for joint in joints}
-    result = []
-    for root in (k for k in range(scene.n_bodies) if k not in children):
-        members, hanging = {root}, []
-        for j, joint in enumerate(joints):
-            if joint.parent in members:
-                members.add(joint.child)
-                hanging.append(j)
-        result.append(Tree(root, tuple(hanging)))
-    return tuple(result)
-
-
-def link_origins(scene: Scene) -> np.ndarray:
-    """Per body [K, 3]: the origin of its PyBullet link frame in its mesh frame, its joint's anchor (a root: 0)."""
-    origins = np.zeros((scene.n_bodies, 3))
-    for joint in scene.joints:
-        origins[joint.child] = joint.child_anchor
-    return origins
+CONTACT_MODES = ("rigid", "compliant")
 
 
 def _start_angle(joint: Joint, angle: float) -> float:
@@ -540,116 +437,3 @@ class BulletEngine(Engine):
 
     def scene_files(self, scene: Scene, parameters: BulletParameters, substeps: int = 1) -> dict[str, str]:
         return scene_files(scene, parameters)
-
-
-def _numbers(values) -> str:
-    return " ".join(repr(float(x)) for x in np.ravel(values))
-
-
-def _roll_pitch_yaw(q: np.ndarray) -> np.ndarray:
-    """URDF's rpy of a rotation (w-first quaternion): R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    m = rotations.to_matrix(q)
-    return np.array([np.arctan2(m[2, 1], m[2, 2]), -np.arcsin(np.clip(m[2, 0], -1, 1)), np.arctan2(m[1, 0], m[0, 0])])
-
-
-def scene_files(scene: Scene, parameters: BulletParameters) -> dict[str, str]:
-    """One URDF per free body or tree of hinged bodies (body_<k>.urdf, k its root: pybullet.loadURDF with
-    flags=URDF_USE_INERTIA_FROM_FILE, else PyBullet computes an inertia of its own from the collision shape): a link
-    per body with its inertial frame, its convex pieces (meshes/body_<k>_<i>.obj, one <collision> each; a convex body
-    has one) and its contact parameters in PyBullet's <contact> extension, and per hinge a continuous (revolute, with a
-    range) joint at the anchor with its damping and friction in <dynamics>; terrain as static_<i>.urdf (mass 0; a
-    height field as its triangle surface); the world settings (step, gravity, the floor and its material) and how the
-    world drives the hinges are stated in a comment, as the generator sets them."""
-    scene = articulated(scene, parameters.articulation)
-    coms, axes, moments = inertial_frames(scene)
-    origins, joints = link_origins(scene), scene.joints
-    world = (
-        f"PyBullet world: fixedTimeStep {scene.dt!r} s, gravity {_numbers(scene.gravity)}, a plane at z = "
-        f"{scene.floor_z!r} with lateral friction {TABLE_2A.floor_friction!r} and restitution "
-        f"{TABLE_2A.floor_restitution!r} (PyBullet multiplies the two materials' coefficients), "
-        f"restitutionVelocityThreshold {TABLE_2A.restitution_velocity_threshold!r}, numSubSteps 0; load with "
-        "flags=URDF_USE_INERTIA_FROM_FILE; after loading: "
-        + ", ".join(f"{key} {value!r}" for key, value in BODY_DYNAMICS_OVERRIDES.items() if key != "collisionMargin")
-    )
-    hinged = (
-        "; hinges: load with flags=URDF_USE_INERTIA_FROM_FILE | URDF_USE_SELF_COLLISION | "
-        "URDF_USE_SELF_COLLISION_INCLUDE_PARENT (the links collide with one another), then per joint "
-        "setJointMotorControl2(VELOCITY_CONTROL, targetVelocity=0, force=<dynamics friction>) and before every step "
-        "setJointMotorControl2(TORQUE_CONTROL, force=-<dynamics damping> x the joint rate)"
-    )
-    names = [quoteattr(body.name) for body in scene.bodies]
-
-    def link(k: int) -> list[str]:
-        compliance = ""
-        if parameters.contact_stiffness is not None:
-            stiffness, damping = parameters.contact_stiffness, parameters.contact_damping
-            compliance = f'<stiffness value="{stiffness!r}"/><damping value="{damping!r}"/>'
-        # a child's link frame is its joint's, at the anchor: its mesh frame sits at minus the anchor there
-        mesh = f'<origin xyz="{_numbers(-origins[k])}" rpy="0 0 0"/>' if origins[k].any() else ""
-        return [
-            f"<link name={names[k]}>",
-            f'<contact><lateral_friction value="{parameters.object_friction[k]!r}"/>'
-            f'<restitution value="{parameters.restitution[k]!r}"/>'
-            f'<spinning_friction value="{parameters.spinning_friction!r}"/>'
-            f'<rolling_friction value="{parameters.rolling_friction!r}"/>{compliance}</contact>',
-            f'<inertial><origin xyz="{_numbers(coms[k] - origins[k])}" rpy="{_numbers(_roll_pitch_yaw(axes[k]))}"/>'
-            f'<mass value="{scene.bodies[k].mass!r}"/><inertia ixx="{float(moments[k][0])!r}" ixy="0" ixz="0" '
-            f'iyy="{float(moments[k][1])!r}" iyz="0" izz="{float(moments[k][2])!r}"/></inertial>',
-            *(
-                f'<collision>{mesh}<geometry><mesh filename="meshes/body_{k}_{i}.obj"/></geometry></collision>'
-                for i in range(len(scene.body_pieces(k)))
-            ),
-            f'<visual>{mesh}<geometry><mesh filename="meshes/body_{k}.obj"/></geometry></visual>',
-            "</link>",
-        ]
-
-    def hinge(joint: Joint) -> list[str]:
-        limit = ""
-        if joint.range is not None:
-            limit = f'<limit lower="{joint.range[0]!r}" upper="{joint.range[1]!r}" effort="0" velocity="0"/>'
-        return [
-            f'<joint name={quoteattr(joint.name)} type="{"revolute" if limit else "continuous"}">',
-            f"<parent link={names[joint.parent]}/><child link={names[joint.child]}/>",
-            f'<origin xyz="{_numbers(joint.parent_anchor - origins[joint.parent])}" rpy="0 0 0"/>',
-            f'<axis xyz="{_numbers(joint.axis)}"/>{limit}',
-            f'<dynamics damping="{joint.damping!r}" friction="{joint.friction!r}"/>',
-            "</joint>",
-        ]
-
-    files = {}
-    for tree in trees(scene):
-        members = [tree.root] + [joints[j].child for j in tree.joints]
-        files[f"body_{tree.root}.urdf"] = "\n".join(
-            [
-                "<?xml version='1.0'?>",
-                f"<!-- {world}{hinged if tree.joints else ''} -->",
-                f"<robot name={names[tree.root]}>",
-                *(line for k in members for line in link(k)),
-                *(line for j in tree.joints for line in hinge(joints[j])),
-                "</robot>",
-            ]
-        )
-    for k in range(scene.n_bodies):
-        files[f"meshes/body_{k}.obj"] = obj_text(scene.body_mesh(k))
-        for i, piece in enumerate(scene.body_pieces(k)):
-            files[f"meshes/body_{k}_{i}.obj"] = obj_text(piece)
-    for i, entry in enumerate(scene.static):
-        surface = entry.heightfield.surface() if entry.heightfield is not None else scene.meshes[entry.mesh]
-        files[f"meshes/static_{i}.obj"] = obj_text(surface)
-        files[f"static_{i}.urdf"] = "\n".join(
-            [
-                "<?xml version='1.0'?>",
-                f"<!-- terrain, fixed (useFixedBase=True), the floor's material; {world} -->",
-                f"<robot name={quoteattr(entry.name)}>",
-                f"<link name={quoteattr(entry.name)}>",
-                f'<contact><lateral_friction value="{TABLE_2A.floor_friction!r}"/>'
-                f'<restitution value="{TABLE_2A.floor_restitution!r}"/></contact>',
-                '<inertial><mass value="0"/><inertia ixx="0" ixy="0" ixz="0" iyy="0" iyz="0" izz="0"/></inertial>',
-                f'<collision><origin xyz="{_numbers(entry.pose[:3])}" '
-                f'rpy="{_numbers(_roll_pitch_yaw(entry.pose[3:]))}"/>'
-                f'<geometry><mesh filename="meshes/static_{i}.obj"/></geometry></collision>',
-                "</link>",
-                "</robot>",
-            ]
-        )
-    return files

@@ -1,33 +1,5 @@
-"""Drake as a contactbench engine: a MultibodyPlant of any recordings scene, its contact parameters and rollouts.
-
-Parameters and what they mean physically
-----------------------------------------
-* ``object_friction[k]``, ``floor_friction``: Coulomb coefficients of body k's and the floor's material. Drake
-  combines two materials' coefficients per contact pair as μ = 2 μ1 μ2 / (μ1 + μ2) (its own rule, applied by Drake;
-  both static and dynamic coefficients get the same value: the discrete solvers use the dynamic one only). As with
-  MuJoCo's Table 2c parameters, identification searches the per-body and the floor coefficients; their combination
-  is Drake's.
-* ``point_stiffness`` (N/m): compliant point contact's spring, f_n = k x (1 + d ẋ) with penetration x.
-* ``hunt_crossley_dissipation`` d (s/m): the Hunt–Crossley damping of the same law; the coefficient of
-  restitution falls roughly as 1 / (1 + d v) with impact speed v.
-* ``contact_model``: "point" (compliant point contact, what Acosta et al. 2022 tuned) or "hydroelastic", in which
-  every body is compliant hydroelastic with ``hydroelastic_modulus`` (Pa) against a rigid hydroelastic floor
-  (pressure field contact; bodies collide with each other compliant-compliant); friction and dissipation act as in
-  point contact and ``point_stiffness`` is unused.
-
-Drake combines the two geometries' stiffnesses in series, k = k1 k2 / (k1 + k2), and their dissipations weighted
-by stiffness, d = k2/(k1+k2) d1 + k1/(k1+k2) d2 (moduli in place of stiffnesses for hydroelastic). So that the
-identified numbers are a floor contact's own values, every body carries ``point_stiffness`` and
-``hunt_crossley_dissipation`` and the floor carries FLOOR_POINT_STIFFNESS (1e15 N/m: a floor contact's stiffness is
-the body's to a relative 1e-8 for k <= 1e7) and the same dissipation (so the weighted mean is exactly d); in
-hydroelastic contact the floor is rigid, so a floor contact has the body's modulus and dissipation exactly. Contacts
-between two bodies have stiffness k/2 (in series), dissipation d and the harmonic-mean friction of the two bodies.
-
-Defaults
---------
-DrakeEngine.default_parameters are what MultibodyPlant uses when a geometry has no proximity properties, from
-``pydrake.geometry.DefaultProximityProperties()`` in drake 1.51.1 (drake/geometry/scene_graph_config.h): friction
-0.5 (static and dynamic), point stiffness 1e6 N/m, Hunt–Crossley dissipation 50 s/m, hydroelastic modulus 1e7 Pa.
+"""Drake as a contactbench engine: a MultibodyPlant of any recordings scene and its rollouts (the contact parameters,
+what they mean and Drake's defaults: drake_scene.py; the scene as SDFormat: drake_sdf.py).
 
 Simulation
 ----------
@@ -90,9 +62,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
-from xml.etree import ElementTree
 
 import numpy as np
 from pydrake.geometry import (
@@ -110,73 +80,35 @@ from pydrake.geometry import (
 )
 from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import (
-    AddMultibodyPlantSceneGraph,
-    ContactModel,
-    CoulombFriction,
-    DiscreteContactApproximation,
-    MultibodyPlant,
-)
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, ContactModel, CoulombFriction, MultibodyPlant
 from pydrake.multibody.tree import FixedOffsetFrame, RevoluteJoint, RotationalInertia, SpatialInertia
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
-from scipy.spatial import ConvexHull
 
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.meshes import obj_text
 from contactbench.recordings import Scene
 from contactbench.rotations import normalize
-from contactbench.sim.articulation import Articulation, articulated
+from contactbench.sim.articulation import articulated
+from contactbench.sim.drake_scene import (
+    DISCRETE_CONTACT_APPROXIMATION,
+    DRAKE_DEFAULT_DISSIPATION,
+    DRAKE_DEFAULT_FRICTION,
+    DRAKE_DEFAULT_POINT_STIFFNESS,
+    FLOOR_POINT_STIFFNESS,
+    HYDROELASTIC_RESOLUTION_HINT,
+    VERTEX_RADIUS,
+    DrakeParameters,
+    box_extents,
+    hull_vertices,
+)
+from contactbench.sim.drake_sdf import mesh_file_name, scene_sdf, sdf_joint_frictions
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
-from contactbench.values import freeze_numbers
 
-CONTACT_MODELS = ("point", "hydroelastic")
-DISCRETE_CONTACT_APPROXIMATION = DiscreteContactApproximation.kTamsi
-# m: the spheres marking hull vertices (SDFormat refuses radius 0); contact starts this far before a vertex touches.
-VERTEX_RADIUS = 1e-9
-FLOOR_POINT_STIFFNESS = 1e15  # N/m: in series with a body's k <= 1e7 it changes the pair's k by at most 1e-8
-# Tessellation size of hydroelastic meshes; a Convex's pressure field is built from its hull whatever the hint, which
-# only affects primitives (spheres, cylinders), so any value serves.
-HYDROELASTIC_RESOLUTION_HINT = 0.01
-# drake 1.51.1 geometry::DefaultProximityProperties (see the module docstring).
-DRAKE_DEFAULT_FRICTION = 0.5
-DRAKE_DEFAULT_POINT_STIFFNESS = 1e6
-DRAKE_DEFAULT_DISSIPATION = 50.0
-DRAKE_DEFAULT_HYDROELASTIC_MODULUS = 1e7
 SIMULATIONS_KEPT = 4  # diagrams a world keeps, least recently used first out (a search asks a generation at a time)
 DIVERGED = 1e4  # m or m/s (rad/s): a toss state beyond this has blown up; its frames from there on are NaN
-
-
-@dataclass(frozen=True)
-class DrakeParameters:
-    """Drake's contact parameters (see the module docstring for their meaning and how Drake combines them)."""
-
-    object_friction: tuple[float, ...]  # Coulomb coefficient per body, in the recordings' body order
-    floor_friction: float
-    point_stiffness: float  # N/m, every body (floor contacts: exactly this)
-    hunt_crossley_dissipation: float  # s/m
-    contact_model: str = "point"  # "point" or "hydroelastic"
-    hydroelastic_modulus: float = DRAKE_DEFAULT_HYDROELASTIC_MODULUS  # Pa, every body; hydroelastic contact only
-    articulation: Articulation | None = None  # hinged scenes: joint damping, friction and inertia; None: as recorded
-
-    def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction",), skip=("contact_model", "articulation"))
-        frictions = self.object_friction + (self.floor_friction,)
-        if self.contact_model not in CONTACT_MODELS:
-            raise ContactbenchError(f"Drake contact_model must be one of {CONTACT_MODELS}, got {self.contact_model!r}")
-        if not (np.isfinite(frictions).all() and min(frictions, default=0.0) >= 0):
-            raise ContactbenchError(f"Drake friction coefficients must be finite and non-negative, got {frictions}")
-        if not 0 < self.point_stiffness < np.inf or not 0 < self.hydroelastic_modulus < np.inf:
-            raise ContactbenchError(
-                f"Drake point stiffness and hydroelastic modulus must be positive and finite, got "
-                f"{self.point_stiffness} N/m and {self.hydroelastic_modulus} Pa"
-            )
-        if not 0 <= self.hunt_crossley_dissipation < np.inf:
-            raise ContactbenchError(
-                f"Drake Hunt-Crossley dissipation must be non-negative and finite, got {self.hunt_crossley_dissipation}"
-            )
 
 
 def body_properties(parameters: DrakeParameters, k: int) -> ProximityProperties:
@@ -233,21 +165,6 @@ def spatial_inertia(scene: Scene, k: int) -> SpatialInertia:
         inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]
     )
     return SpatialInertia.MakeFromCentralInertia(scene.bodies[k].mass, com, rotational)
-
-
-def hull_vertices(scene: Scene, k: int) -> np.ndarray:
-    """The vertices [V, 3] of body k's convex hull, mesh frame."""
-    vertices = scene.body_mesh(k).vertices
-    return vertices[ConvexHull(vertices).vertices]
-
-
-def box_extents(scene: Scene, k: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Centre and size of body k's hull if it is a box along its mesh axes, else None."""
-    corners = hull_vertices(scene, k)
-    low, high = corners.min(axis=0), corners.max(axis=0)
-    tolerance = 1e-9 * scene.body_mesh(k).width
-    on_corners = np.all(np.minimum(np.abs(corners - low), np.abs(corners - high)) <= tolerance)
-    return ((low + high) / 2, high - low) if len(corners) == 8 and on_corners else None
 
 
 def hull_shape(scene: Scene, k: int, contact_model: str) -> tuple[RigidTransform, Box | Convex]:
@@ -458,160 +375,6 @@ class DrakeWorld(World):
 
     def close(self) -> None:
         self._simulations.clear()
-
-
-def _xml_numbers(values) -> str:
-    return " ".join(repr(float(x)) for x in np.ravel(values))
-
-
-def _collision_xml(name: str, pose, geometry: str, friction: float, stiffness: float, parameters, extra: str) -> str:
-    number = _xml_numbers
-    return (
-        f'<collision name="{name}"><pose>{number(pose)} 0 0 0</pose><geometry>{geometry}</geometry>'
-        f"<drake:proximity_properties><drake:mu_dynamic>{number(friction)}</drake:mu_dynamic>"
-        f"<drake:mu_static>{number(friction)}</drake:mu_static>"
-        f"<drake:point_contact_stiffness>{number(stiffness)}</drake:point_contact_stiffness>"
-        f"<drake:hunt_crossley_dissipation>{number(parameters.hunt_crossley_dissipation)}"
-        f"</drake:hunt_crossley_dissipation>{extra}</drake:proximity_properties></collision>"
-    )
-
-
-def mesh_file_name(k: int) -> str:
-    """Body k's mesh, relative to scene.sdf."""
-    return f"meshes/body{k}.obj"
-
-
-def _filter_group(name: str, members: list[str], ignored: list[str]) -> str:
-    return (
-        f'<drake:collision_filter_group name="{name}">'
-        + "".join(f"<drake:member>{member}</drake:member>" for member in members)
-        + "".join(f"<drake:ignored_collision_filter_group>{g}</drake:ignored_collision_filter_group>" for g in ignored)
-        + "</drake:collision_filter_group>"
-    )
-
-
-def scene_sdf(scene: Scene, parameters: DrakeParameters, substeps: int = 1) -> str:
-    """SDFormat text of what add_scene builds, with these parameters; it refers to body k's mesh as
-    meshes/body<k>.obj. A hinge is a revolute joint hinge<j> with its damping and its Coulomb friction in
-    <dynamics><friction>, which Drake's parser does not apply: DrakeWorld reads it back (sdf_joint_frictions)."""
-    if len(parameters.object_friction) != scene.n_bodies:
-        raise ContactbenchError(f"{len(parameters.object_friction)} object frictions for {scene.n_bodies} bodies")
-    scene = articulated(scene, parameters.articulation)
-    parent_of = {joint.child: joint for joint in scene.joints}
-    point = parameters.contact_model == "point"
-    body_extra, floor_extra = "", ""
-    if not point:
-        body_extra = (
-            f"<drake:compliant_hydroelastic/><drake:hydroelastic_modulus>{_xml_numbers(parameters.hydroelastic_modulus)}"
-            f"</drake:hydroelastic_modulus><drake:mesh_resolution_hint>{HYDROELASTIC_RESOLUTION_HINT!r}"
-            "</drake:mesh_resolution_hint>"
-        )
-        floor_extra = "<drake:rigid_hydroelastic/>"
-    massless = "<inertial><mass>0</mass><inertia><ixx>0</ixx><iyy>0</iyy><izz>0</izz></inertia></inertial>"
-    links = []
-    for k in range(scene.n_bodies):
-        com, inertia = scene.inertial(k)
-        friction, stiffness = parameters.object_friction[k], parameters.point_stiffness
-        moments = "".join(
-            f"<i{a}>{_xml_numbers(inertia[i, j])}</i{a}>"
-            for a, (i, j) in {
-                "xx": (0, 0),
-                "yy": (1, 1),
-                "zz": (2, 2),
-                "xy": (0, 1),
-                "xz": (0, 2),
-                "yz": (1, 2),
-            }.items()
-        )
-        box = box_extents(scene, k) if point else None
-        hull_pose = np.zeros(3) if box is None else box[0]
-        hull = (
-            f"<mesh><uri>{mesh_file_name(k)}</uri><drake:declare_convex/></mesh>"
-            if box is None
-            else f"<box><size>{_xml_numbers(box[1])}</size></box>"
-        )
-        # A hinge's child sits where angle 0 puts it; the state of a toss places every body anyway.
-        placed = (
-            f'<pose relative_to="body{parent_of[k].parent}">'
-            f"{_xml_numbers(parent_of[k].parent_anchor - parent_of[k].child_anchor)} 0 0 0</pose>"
-            if k in parent_of
-            else ""
-        )
-        links.append(
-            f'<link name="body{k}">{placed}<inertial><pose>{_xml_numbers(com)} 0 0 0</pose>'
-            f"<mass>{_xml_numbers(scene.bodies[k].mass)}</mass><inertia>{moments}</inertia></inertial>"
-            f"{_collision_xml(f'body{k}', hull_pose, hull, friction, stiffness, parameters, body_extra)}</link>"
-        )
-        if point:
-            spheres = "".join(
-                _collision_xml(
-                    f"body{k}_vertex{i}",
-                    vertex,
-                    f"<sphere><radius>{VERTEX_RADIUS!r}</radius></sphere>",
-                    friction,
-                    stiffness,
-                    parameters,
-                    "",
-                )
-                for i, vertex in enumerate(hull_vertices(scene, k))
-            )
-            links.append(
-                f'<link name="body{k}_vertices"><pose relative_to="body{k}"/>{massless}{spheres}</link>'
-                f'<joint name="body{k}_vertices_weld" type="fixed"><parent>body{k}</parent>'
-                f"<child>body{k}_vertices</child></joint>"
-            )
-    for j, joint in enumerate(scene.joints):
-        limits = "" if joint.range is None else f"<lower>{joint.range[0]!r}</lower><upper>{joint.range[1]!r}</upper>"
-        links.append(
-            f'<joint name="hinge{j}" type="revolute"><pose>{_xml_numbers(joint.child_anchor)} 0 0 0</pose>'
-            f"<parent>body{joint.parent}</parent><child>body{joint.child}</child><axis><xyz>{_xml_numbers(joint.axis)}"
-            f"</xyz><limit>{limits}<effort>0</effort></limit><dynamics><damping>{joint.damping!r}</damping>"
-            f"<friction>{joint.friction!r}</friction></dynamics></axis></joint>"
-        )
-    floor = _collision_xml(
-        "floor",
-        np.zeros(3),
-        "<plane><normal>0 0 1</normal></plane>",
-        parameters.floor_friction,
-        FLOOR_POINT_STIFFNESS,
-        parameters,
-        floor_extra,
-    )
-    filters = []
-    if point:
-        hulls, vertices = (
-            [f"body{k}" for k in range(scene.n_bodies)],
-            [f"body{k}_vertices" for k in range(scene.n_bodies)],
-        )
-        filters = [
-            _filter_group("hull_group", hulls, ["floor_group"]),
-            _filter_group("vertex_group", vertices, ["hull_group", "vertex_group"]),
-            _filter_group("floor_group", ["floor"], []),
-        ]
-    return "\n".join(
-        [
-            '<?xml version="1.0"?>',
-            f"<!-- {scene.name}: the plant is discrete with time_step {float(scene.dt / substeps)!r} s, gravity "
-            f"{_xml_numbers(scene.gravity)} m/s^2, {parameters.contact_model} contact, discrete contact approximation "
-            f"{DISCRETE_CONTACT_APPROXIMATION.name}, hinged links colliding with each other: SDFormat carries none "
-            "of these (contactbench.sim.drake_engine.new_plant sets them), and Drake applies no joint <friction> "
-            "(drake_engine.add_joint_friction does). The meshes are in meshes/ beside this file. -->",
-            '<sdf version="1.9" xmlns:drake="http://drake.mit.edu">',
-            '<model name="scene">',
-            *links,
-            f'<link name="floor"><pose>0 0 {_xml_numbers(scene.floor_z)} 0 0 0</pose>{massless}{floor}</link>',
-            '<joint name="floor_weld" type="fixed"><parent>world</parent><child>floor</child></joint>',
-            *filters,
-            "</model>",
-            "</sdf>",
-        ]
-    )
-
-
-def sdf_joint_frictions(path: str | Path, n_joints: int) -> list[float]:
-    """The Coulomb friction (N m) of hinges hinge0..hinge<n_joints - 1> in a scene_sdf file."""
-    joints = {joint.get("name"): joint for joint in ElementTree.parse(path).getroot().iter("joint")}
-    return [float(joints[f"hinge{j}"].findtext("axis/dynamics/friction", "0")) for j in range(n_joints)]
 
 
 class DrakeEngine(Engine):
