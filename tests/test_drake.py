@@ -368,3 +368,32 @@ def test_folding_links_collide_and_a_hinged_scene_file_simulates_as_the_world(tm
     assert np.isfinite(poses).all() and np.abs(angles).max() < 2.0 and angles[-1] < -np.pi / 2
     assert poses[-1, 1, 2] > 0.09  # still up, leaning on the parent
     np.testing.assert_allclose(velocities[-1], 0.0, atol=1e-3)
+
+
+def test_a_toss_where_the_discrete_solver_fails_goes_on_at_a_finer_step():
+    """Untuned Drake on real elbow toss 190 (val): TAMSI fails to converge at the recordings' step within the first
+    quarter second; the world goes on from the last frame at a finer step, so the toss is scored, not lost."""
+    from contactbench.config import CONFIG_DIR
+    from contactbench.protocol import make_context
+    from contactbench.recordings import read_recordings
+    from contactbench.sim.drake_engine import FALLBACK_REFINEMENT
+
+    elbow = read_recordings(CONFIG_DIR.parent / "assets" / "contactnets_elbow", ["val"])
+    split = elbow.split("val")
+    toss = int(np.flatnonzero(split.extras["source_index"] == 190)[0])
+    context = make_context(split.select([toss]), elbow.dt, 6)
+    world = DrakeWorld(elbow.scene, 1)
+    parameters = ENGINE.default_parameters(2)
+    steps = 60
+    _, _, failed_at = world._simulation(parameters).toss(context.poses[0, -1], context.velocities[0, -1], steps)
+    assert failed_at is not None and failed_at < steps  # the solver does fail here at the recordings' step
+    poses, velocities = world.toss(parameters, context.poses[0, -1], context.velocities[0, -1], steps)
+    assert np.isfinite(poses).all() and np.isfinite(velocities).all()
+    gap = np.linalg.norm(
+        kinematics.hinge_anchor(poses[:, 0], elbow.joints[0])
+        - kinematics.world_vertices(poses[:, 1], elbow.joints[0].child_anchor[None])[:, 0],
+        axis=-1,
+    )
+    assert gap.max() < 1e-9
+    fine = world._simulation(parameters, FALLBACK_REFINEMENT)
+    assert fine.frame_steps == FALLBACK_REFINEMENT

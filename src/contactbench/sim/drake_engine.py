@@ -55,7 +55,9 @@ keeps the last few), every toss starts from a clone of that diagram's template c
 Boxes (hull_shape), which make crashes rarer; what makes them harmless is that DrakeWorld says ``in_process = False``:
 sim/stepped.SteppedRollouts then runs every toss in worker processes, even with one thread, and a crashed worker costs
 only the tosses it ran, each run again in a fresh process (NaN, an unstable candidate, only where a toss kills a
-fresh process of its own).
+fresh process of its own). Where TAMSI, the discrete solver, fails to converge at a frame (a stiff contact at the
+recordings' step: untuned Drake on a few real elbow tosses), the toss goes on from its last frame in a diagram of the
+same parameters stepping FALLBACK_REFINEMENT times finer; only a toss that fails there too is unstable.
 """
 
 from __future__ import annotations
@@ -109,6 +111,7 @@ from contactbench.sim.stepped import SteppedRollouts, World
 
 SIMULATIONS_KEPT = 4  # diagrams a world keeps, least recently used first out (a search asks a generation at a time)
 DIVERGED = 1e4  # m or m/s (rad/s): a toss state beyond this has blown up; its frames from there on are NaN
+FALLBACK_REFINEMENT = 4  # steps a frame where the solver failed at the recordings' step
 
 
 def body_properties(parameters: DrakeParameters, k: int) -> ProximityProperties:
@@ -287,7 +290,11 @@ class _Simulation:
         self.step = plant.time_step()
         self.frame_steps = frame_steps
 
-    def toss(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    def toss(
+        self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int
+    ) -> tuple[np.ndarray, np.ndarray, int | None]:
+        """Poses and world velocities of frames 1..n_steps (NaN from a diverged frame) and the frame at which the
+        discrete solver failed to converge (None: it never did)."""
         n_positions = self.plant.num_positions()
         q, v = np.zeros(n_positions), np.zeros(self.plant.num_velocities())
         poses0 = np.concatenate([poses0[:, :3], normalize(poses0[:, 3:])], axis=-1)
@@ -303,9 +310,16 @@ class _Simulation:
         self.plant.SetPositionsAndVelocities(plant_context, np.concatenate([q, v]))
         self.simulator.Initialize()
         states = np.full((n_steps, n_positions + len(v)), np.nan)
+        failed_at = None
         for frame in range(n_steps):
             # The time of the frame's last step, computed as Drake computes its periodic update times.
-            self.simulator.AdvanceTo((frame + 1) * self.frame_steps * self.step)
+            try:
+                self.simulator.AdvanceTo((frame + 1) * self.frame_steps * self.step)
+            except RuntimeError as error:
+                if "failed to converge" not in str(error):
+                    raise
+                failed_at = frame
+                break
             state = self.plant.GetPositionsAndVelocities(plant_context)
             # A diverged state must not reach the next step: non-finite or runaway poses corrupt the broad phase's
             # bounding-box tree, and Drake crashed (a segmentation fault in FinalizePoseUpdate) in multi-body tosses.
@@ -325,7 +339,7 @@ class _Simulation:
                 states[:, angle_at],
                 states[:, n_positions + rate_at],
             )
-        return poses, velocities
+        return poses, velocities, failed_at
 
 
 class DrakeWorld(World):
@@ -340,15 +354,17 @@ class DrakeWorld(World):
         self.scene_file = scene_file
         self._simulations: OrderedDict[DrakeParameters | str, _Simulation] = OrderedDict()
 
-    def _simulation(self, parameters: DrakeParameters) -> _Simulation:
+    def _simulation(self, parameters: DrakeParameters, refinement: int = 1) -> _Simulation:
         """The diagram of these parameters, built with them: replacing proximity properties in a built context
-        (SceneGraph.AssignRole) crashed Drake 1.51.1 in multi-body searches, where building costs a few ms."""
-        key = parameters if self.scene_file is None else parameters.contact_model
+        (SceneGraph.AssignRole) crashed Drake 1.51.1 in multi-body searches, where building costs a few ms.
+        `refinement` > 1: the same scene stepping that many times per step of the world (the solver's fallback)."""
+        key = (parameters if self.scene_file is None else parameters.contact_model, refinement)
         if key in self._simulations:
             self._simulations.move_to_end(key)
             return self._simulations[key]
         scene = articulated(self.scene, parameters.articulation) if self.scene_file is None else self.scene
-        builder, plant, scene_graph = new_plant(scene, self.substeps, parameters.contact_model)
+        substeps = self.substeps * refinement
+        builder, plant, scene_graph = new_plant(scene, substeps, parameters.contact_model)
         if self.scene_file is None:
             add_scene(plant, scene_graph, scene, parameters)
             frictions = [joint.friction for joint in scene.joints]
@@ -357,7 +373,7 @@ class DrakeWorld(World):
             frictions = sdf_joint_frictions(self.scene_file, len(scene.joints))
         plant.Finalize()
         add_joint_friction(builder, plant, frictions)
-        self._simulations[key] = _Simulation(builder, plant, scene, self.substeps)
+        self._simulations[key] = _Simulation(builder, plant, scene, substeps)
         if len(self._simulations) > SIMULATIONS_KEPT:
             self._simulations.popitem(last=False)
         return self._simulations[key]
@@ -369,9 +385,14 @@ class DrakeWorld(World):
             raise ContactbenchError(
                 f"{len(parameters.object_friction)} object frictions for a scene of {self.scene.n_bodies} bodies"
             )
-        return self._simulation(parameters).toss(
-            np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64), n_steps
-        )
+        poses0, velocities0 = np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64)
+        poses, velocities, failed_at = self._simulation(parameters).toss(poses0, velocities0, n_steps)
+        if failed_at is None:
+            return poses, velocities
+        start = (poses0, velocities0) if failed_at == 0 else (poses[failed_at - 1], velocities[failed_at - 1])
+        rest = self._simulation(parameters, FALLBACK_REFINEMENT).toss(*start, n_steps - failed_at)
+        poses[failed_at:], velocities[failed_at:] = rest[0], rest[1]
+        return poses, velocities
 
     def close(self) -> None:
         self._simulations.clear()
