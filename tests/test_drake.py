@@ -376,7 +376,7 @@ def test_a_toss_where_the_discrete_solver_fails_goes_on_at_a_finer_step():
     from contactbench.config import CONFIG_DIR
     from contactbench.protocol import make_context
     from contactbench.recordings import read_recordings
-    from contactbench.sim.drake_engine import FALLBACK_REFINEMENT
+    from contactbench.sim.drake_engine import FALLBACK_REFINEMENTS
 
     elbow = read_recordings(CONFIG_DIR.parent / "assets" / "contactnets_elbow", ["val"])
     split = elbow.split("val")
@@ -395,5 +395,5 @@ def test_a_toss_where_the_discrete_solver_fails_goes_on_at_a_finer_step():
         axis=-1,
     )
     assert gap.max() < 1e-9
-    fine = world._simulation(parameters, FALLBACK_REFINEMENT)
-    assert fine.frame_steps == FALLBACK_REFINEMENT
+    finest = world._simulation(parameters, FALLBACK_REFINEMENTS[-1])
+    assert finest.frame_steps == FALLBACK_REFINEMENTS[-1]

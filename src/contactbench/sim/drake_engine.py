@@ -57,7 +57,7 @@ sim/stepped.SteppedRollouts then runs every toss in worker processes, even with 
 only the tosses it ran, each run again in a fresh process (NaN, an unstable candidate, only where a toss kills a
 fresh process of its own). Where TAMSI, the discrete solver, fails to converge at a frame (a stiff contact at the
 recordings' step: untuned Drake on a few real elbow tosses), the toss goes on from its last frame in a diagram of the
-same parameters stepping FALLBACK_REFINEMENT times finer; only a toss that fails there too is unstable.
+same parameters stepping finer (FALLBACK_REFINEMENTS, in turn); only a toss that fails at the finest is unstable.
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ from contactbench.sim.stepped import SteppedRollouts, World
 
 SIMULATIONS_KEPT = 4  # diagrams a world keeps, least recently used first out (a search asks a generation at a time)
 DIVERGED = 1e4  # m or m/s (rad/s): a toss state beyond this has blown up; its frames from there on are NaN
-FALLBACK_REFINEMENT = 4  # steps a frame where the solver failed at the recordings' step
+FALLBACK_REFINEMENTS = (4, 16)  # steps a frame, in turn, where the solver failed at the recordings' step
 
 
 def body_properties(parameters: DrakeParameters, k: int) -> ProximityProperties:
@@ -387,11 +387,15 @@ class DrakeWorld(World):
             )
         poses0, velocities0 = np.asarray(poses0, dtype=np.float64), np.asarray(velocities0, dtype=np.float64)
         poses, velocities, failed_at = self._simulation(parameters).toss(poses0, velocities0, n_steps)
-        if failed_at is None:
-            return poses, velocities
-        start = (poses0, velocities0) if failed_at == 0 else (poses[failed_at - 1], velocities[failed_at - 1])
-        rest = self._simulation(parameters, FALLBACK_REFINEMENT).toss(*start, n_steps - failed_at)
-        poses[failed_at:], velocities[failed_at:] = rest[0], rest[1]
+        for refinement in FALLBACK_REFINEMENTS:
+            if failed_at is None:
+                break
+            start = (poses0, velocities0) if failed_at == 0 else (poses[failed_at - 1], velocities[failed_at - 1])
+            rest_poses, rest_velocities, failed_again = self._simulation(parameters, refinement).toss(
+                *start, n_steps - failed_at
+            )
+            poses[failed_at:], velocities[failed_at:] = rest_poses, rest_velocities
+            failed_at = None if failed_again is None else failed_at + failed_again
         return poses, velocities
 
     def close(self) -> None:
