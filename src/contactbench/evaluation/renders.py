@@ -191,6 +191,7 @@ RENDERED = (
     ("terrain", "ground=ramp,faces=6"),
     ("articulated", "joint_damping=0.005"),
     ("contactnets_cube", None),
+    ("contactnets_elbow", None),
 )
 
 
