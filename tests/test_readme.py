@@ -28,6 +28,7 @@ from contactbench.config import CONFIG_DIR, REPO_ROOT
 
 README = REPO_ROOT / "README.md"
 PAGES = [README, *sorted((REPO_ROOT / "docs").glob("*.md"))]
+RESULT_PAGES = sorted((REPO_ROOT / "docs" / "results").glob("*.md"))  # measurements, linked from the guides
 README_LINES = 200  # the front door: what, two commands, one headline result, how to use, links; the rest in docs/
 ENTRY_POINTS = {"train.py": "train", "evaluate.py": "evaluate", "generate.py": "generate", "diagnose.py": "diagnose"}
 VENV_TOOLS = ("mlflow", "tensorboard", "wandb")
@@ -220,8 +221,10 @@ def test_the_readme_is_a_front_door():
 
 def test_every_relative_link_of_the_readme_and_docs_resolves():
     assert len(PAGES) > 5 and sum(len(relative_links(page)) for page in PAGES) > 40  # not a vacuous pass
-    broken = [line for page in PAGES for line in broken_links(page)]
+    broken = [line for page in PAGES + RESULT_PAGES for line in broken_links(page)]
     assert not broken, "links to nowhere:\n" + "\n".join(broken)
+    linked = {target.split("#")[0] for page in PAGES for target in relative_links(page)}
+    assert RESULT_PAGES and all(any(t.endswith(f"results/{p.name}") for t in linked) for p in RESULT_PAGES)
 
 
 def test_code_and_configs_name_only_docs_that_exist():

@@ -2,8 +2,8 @@
 
     python -m contactbench.contactnets_elbow SOURCE_DIR OUT_DIR
 
-SOURCE_DIR holds the publisher's `0.pt` ... `540.pt` (dair_pll's `assets/contactnets_elbow/`, at commit b5783254),
-and its LICENSE lies two folders up (dair_pll's root), copied beside the dataset.
+SOURCE_DIR holds the publisher's `0.pt` ... `540.pt` (dair_pll's `assets/contactnets_elbow/`; docs/RECORDINGS.md
+names the published version), and its LICENSE lies two folders up (dair_pll's root), copied beside the dataset.
 Each is a torch archive of one float64 tensor [121, 15]; it is read as raw bytes, never unpickled: its pickled
 header must be exactly the one every published file carries (a plain tensor), or the file is refused. The output is
 the same bytes on every run.
@@ -16,8 +16,9 @@ Conventions (docs/RECORDINGS.md, "Shipped datasets"):
   uniform solids, not the URDF's, which carries a 10 cm cube's value on every axis.
 * The hinge: axis y, on the base's mesh frame at (-0.035, 0.06, 0), on the child's at (-0.035, 0, 0). The child's
   pose and velocity follow from the base's by `kinematics.hinge_child`, so the anchors coincide to rounding.
-* dt = 1/148 s, the ContactNets tracker's rate (the cube's). The publisher's example uses 0.0068 s; the recorded
-  velocities are backward differences over 1/148 s, and free flight's gravity comes out as the cube's at 1/148 s.
+* dt = 1/148 s, the ContactNets tracker's rate (the cube's), not the publisher's example's 0.0068 s: the recorded
+  velocities are backward differences over the tracker's step, and free flight then falls as the cube's does
+  (docs/RECORDINGS.md).
 * Velocities are the publisher's: backward differences (x_t - x_{t-1} = dt v_t), the project's convention, so they
   lag the motion by half a frame; the angular velocity is turned into the world frame.
 * Split 50 / 30 / 20 % into train, val and test by a permutation of seed `SPLIT_SEED`; `source_index` names each
