@@ -84,3 +84,22 @@ def hinge_coordinates(
     axis = rotations.rotate(parent[..., 3:], np.broadcast_to(joint.axis, parent.shape[:-1] + (3,)))
     rate = np.einsum("...i,...i->...", child_velocity[..., 3:] - parent_velocity[..., 3:], axis)
     return angle, rate
+
+
+def hinge_errors(poses: np.ndarray, joints) -> tuple[np.ndarray, np.ndarray]:
+    """How far poses [..., K, 7] (unit quaternions) break each hinge: the distance between its two anchors (m) and the
+    angle between its two axes (rad), each [..., J]."""
+    gaps, angles = [], []
+    for joint in joints:
+        parent, child = poses[..., joint.parent, :], poses[..., joint.child, :]
+        anchors = [
+            world_vertices(pose, anchor[None])[..., 0, :]
+            for pose, anchor in ((parent, joint.parent_anchor), (child, joint.child_anchor))
+        ]
+        gaps.append(np.linalg.norm(anchors[0] - anchors[1], axis=-1))
+        axis_parent = rotations.rotate(parent[..., 3:], joint.axis)
+        axis_child = rotations.rotate(child[..., 3:], joint.axis)
+        cross = np.linalg.norm(np.cross(axis_parent, axis_child), axis=-1)
+        angles.append(np.arctan2(cross, np.einsum("...i,...i->...", axis_parent, axis_child)))
+    shape = poses.shape[:-2] + (0,)
+    return (np.stack(gaps, axis=-1), np.stack(angles, axis=-1)) if joints else (np.zeros(shape), np.zeros(shape))

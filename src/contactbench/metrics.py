@@ -10,7 +10,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.ground import Ground, signed_distance
-from contactbench.kinematics import world_vertices
+from contactbench.kinematics import hinge_errors, world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import scored_frames, trajectory_means
 from contactbench.recordings import Joint
@@ -144,20 +144,7 @@ def ground_clearance(poses, meshes: list[Mesh], ground: Ground) -> np.ndarray:
 def joint_errors(poses, joints: list[Joint]) -> tuple[np.ndarray, np.ndarray]:
     """How far poses [..., K, 7] break each hinge: the distance between its two anchors (m) and the angle between its
     two axes (rad), each [..., J]."""
-    poses = _unit_quaternions(np.asarray(poses, float))
-    gaps, angles = [], []
-    for joint in joints:
-        parent, child = poses[..., joint.parent, :], poses[..., joint.child, :]
-        anchors = [
-            world_vertices(pose, anchor[None])[..., 0, :]
-            for pose, anchor in ((parent, joint.parent_anchor), (child, joint.child_anchor))
-        ]
-        gaps.append(np.linalg.norm(anchors[0] - anchors[1], axis=-1))
-        axis_parent = rotations.rotate(parent[..., 3:], joint.axis)
-        axis_child = rotations.rotate(child[..., 3:], joint.axis)
-        cross = np.linalg.norm(np.cross(axis_parent, axis_child), axis=-1)
-        angles.append(np.arctan2(cross, np.einsum("...i,...i->...", axis_parent, axis_child)))
-    return np.stack(gaps, axis=-1), np.stack(angles, axis=-1)
+    return hinge_errors(_unit_quaternions(np.asarray(poses, float)), joints)
 
 
 # ---------------------------------------------------------------- separating-axis test for convex bodies

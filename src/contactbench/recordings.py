@@ -16,7 +16,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
-from contactbench import atomic, rotations
+from contactbench import atomic, kinematics
 from contactbench.errors import ContactbenchError
 from contactbench.meshes import Mesh, MeshError, convexity_problem, obj_text, read_obj
 
@@ -578,22 +578,10 @@ def validate_split(split: Split, n_bodies: int, where: str) -> None:
 def validate_hinges(scene: Scene, split: Split, where: str) -> None:
     """Every valid frame keeps each hinge: its anchors coincide and its axes line up, within the tolerances above."""
     valid = split.valid_mask()
+    with np.errstate(invalid="ignore"):  # NaN frames past a toss's end are not judged
+        gaps, tilts = kinematics.hinge_errors(split.poses, scene.joints)
     for j, joint in enumerate(scene.joints):
-        parent = split.poses[:, :, joint.parent]
-        child = split.poses[:, :, joint.child]
-        with np.errstate(invalid="ignore"):
-            gap = np.linalg.norm(
-                parent[..., :3]
-                + rotations.rotate(parent[..., 3:], np.broadcast_to(joint.parent_anchor, parent.shape[:-1] + (3,)))
-                - child[..., :3]
-                - rotations.rotate(child[..., 3:], np.broadcast_to(joint.child_anchor, child.shape[:-1] + (3,))),
-                axis=-1,
-            )
-            axes = [
-                rotations.rotate(pose[..., 3:], np.broadcast_to(joint.axis, pose.shape[:-1] + (3,)))
-                for pose in (parent, child)
-            ]
-            tilt = np.arccos(np.clip(np.einsum("...i,...i->...", *axes), -1.0, 1.0))
+        gap, tilt = gaps[..., j], tilts[..., j]
         for values, tolerance, what in (
             (gap, HINGE_GAP_TOLERANCE, "m between its anchors"),
             (tilt, HINGE_AXIS_TOLERANCE, "rad between its axes"),
