@@ -3,16 +3,24 @@ small PyBullet datasets whose concealed physics is known."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
+import mujoco
 import numpy as np
 import pytest
 
+from contactbench import rotations
+from contactbench.config import REPO_ROOT
+from contactbench.diagnosis import contact_kinematics, contact_rows
 from contactbench.diagnosis import contact_signatures as signatures
 from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED, RULED_OUT
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.scenes import SceneSpec
-from contactbench.recordings import read_recordings
+from contactbench.kinematics import hinge_child
+from contactbench.recordings import Recordings, Split, read_recordings
+from contactbench.sim.engines import engine
+from contactbench.sim.mujoco_scene import ContactParameters
 
 CUBE = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)
 ICOSAHEDRON = SceneSpec("polyhedra", friction=0.5, restitution=0.125, faces=20)
@@ -85,6 +93,7 @@ def test_every_signature_says_what_it_speaks_to_and_bounces_are_read(found):
         assert set(result["signatures"]) == set(signatures.SPEAKS_TO)
         for name, signature in result["signatures"].items():
             assert signature["speaks_to"] == signatures.SPEAKS_TO[name] and signature["sentence"]
+            assert "hinged" not in signature  # free bodies only: nothing read through a tree
     # a cube tossed with restitution 0 still rebounds a little at its landing vertex (it rotates), an icosahedron
     # with restitution 0.125 more
     cube, icosahedron = found["cube"]["splits"]["val"]["bounce"], found["icosahedron"]["splits"]["val"]["bounce"]
@@ -119,3 +128,90 @@ def test_the_same_seed_gives_the_same_numbers(tmp_path):
 def test_evidence_against_a_margin_on_val_confirmed_on_test(val_ci, test, two_sided, expected):
     val = {"value": float(np.mean(val_ci)), "ci": val_ci}
     assert signatures.evidence(val, test, 0.05, two_sided) == expected
+
+
+# ---------------------------------------------------------------- bodies on joints
+
+
+def _hinged_slides(n: int = 8, frames: int = 60) -> Recordings:
+    """The real elbow's two bars, simulated in MuJoCo: the parent bar lies on a 5 cm face with the hinge axis upright,
+    sliding at 1.5 m/s, the child bar above it whirling about the hinge at 6-10 rad/s, clear of the floor. Friction
+    0.3 on an elliptic cone (MuJoCo's default pyramid makes the friction depend on the slip's direction)."""
+    elbow = read_recordings(REPO_ROOT / "assets" / "contactnets_elbow")
+    rng = np.random.default_rng(0)
+    upright = rotations.from_axis_angle(np.array([1.0, 0.0, 0.0]), np.pi / 2)  # the bar's y axis, the hinge's, up
+    half_height = elbow.body_mesh(0).vertices[:, 1].max()
+    yaw = [rotations.from_axis_angle(np.array([0.0, 0.0, 1.0]), a) for a in rng.uniform(-np.pi, np.pi, n)]
+    parent = np.zeros((n, 7))
+    parent[:, 2] = half_height + 1e-4
+    parent[:, 3:] = [rotations.multiply(q, upright) for q in yaw]
+    heading = rng.uniform(-np.pi, np.pi, n)
+    parent_velocity = np.zeros((n, 6))
+    parent_velocity[:, :2] = 1.5 * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    rate = rng.choice([-1.0, 1.0], n) * rng.uniform(6.0, 10.0, n)
+    child, child_velocity = hinge_child(parent, parent_velocity, elbow.joints[0], rng.uniform(-np.pi, np.pi, n), rate)
+    poses0, velocities0 = np.stack([parent, child], axis=1), np.stack([parent_velocity, child_velocity], axis=1)
+    rollouts = engine("mujoco").rollouts(elbow, substeps=10)
+    params = ContactParameters(object_friction=(0.3, 0.3), floor_friction=0.3, floor_stiffness=None, floor_damping=None)
+    rollouts.model(params).opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    result = rollouts.simulate(params, poses0, velocities0, frames)
+    assert not result.unstable.any()
+    poses = np.concatenate([poses0[:, None], result.poses[0]], axis=1)
+    split = Split(poses=poses, lengths=np.full(n, frames + 1))  # velocities: backward differences of the poses
+    return dataclasses.replace(elbow, splits={"train": split})
+
+
+def test_a_hinged_bar_sliding_under_a_whirling_one_reads_the_friction_through_the_pair_s_momentum():
+    slides = _hinged_slides()
+    split = slides.split("train")
+    rows = contact_rows.split_rows(slides, split)["sliding"]
+    assert len(np.unique(rows.toss)) == split.n_trajectories and len(rows.toss) > 100
+    ratios = rows.response / rows.design[:, 0]
+    assert np.percentile(ratios, [5, 95]) == pytest.approx([0.3, 0.3], abs=0.03)
+    mu = float(rows.design[:, 0] @ rows.response / (rows.design[:, 0] @ rows.design[:, 0]))
+    assert mu == pytest.approx(0.3, abs=0.01)
+    # Read alone, the sliding bar's own motion carries the hinge's pull: its push over its load strays far off mu.
+    pair = contact_kinematics.tree_kinematics(slides, split, (0, 1))[0]
+    alone = contact_kinematics.body_kinematics(slides, split, 0)
+    sliding = pair["in_contact"].copy()
+    sliding[:, 0] = False
+    sliding[:, 1:] &= pair["in_contact"][:, :-1]
+    quartiles = {}
+    for name, reading in (("pair", pair), ("alone", alone)):
+        push = reading["push"][sliding]
+        quartiles[name] = np.percentile(np.linalg.norm(push[:, :2], axis=-1) / push[:, 2], [25, 75])
+    assert quartiles["pair"] == pytest.approx([0.3, 0.3], abs=0.02)
+    assert np.ptp(quartiles["alone"]) > 0.15
+
+
+def test_a_flying_hinged_pair_has_no_floor_force_or_torque_though_each_link_feels_the_hinge(tmp_path):
+    spec = SceneSpec("articulated", friction=0.3, restitution=0.125, shape="elbow", bodies=2)
+    elbow = read_recordings(generate_dataset(spec, tmp_path, split_sizes={"train": 20}, workers=1, progress=False))
+    split = elbow.split("train")
+    pair = contact_kinematics.tree_kinematics(elbow, split, (0, 1))
+    flying = pair[0]["flying"].copy()
+    flying[:, 0] = False
+    flying[:, 1:] &= pair[0]["flying"][:, :-1]
+    assert flying.sum() > 200 and (pair[0]["flying"] == pair[1]["flying"]).all()
+    tree_torque = np.median(np.linalg.norm(pair[0]["torque_per_mass"][flying], axis=-1))
+    assert np.median(np.linalg.norm(pair[0]["push"][flying], axis=-1)) < 0.05  # m/s^2 per unit mass: none
+    for link in (0, 1):
+        alone = contact_kinematics.body_kinematics(elbow, split, link)
+        assert np.median(np.linalg.norm(alone["push"][flying], axis=-1)) > 0.1
+        assert tree_torque < 0.2 * np.median(np.linalg.norm(alone["torque_per_mass"][flying], axis=-1))
+
+
+def test_the_real_elbow_s_bars_are_read_in_contact_and_each_signature_says_how():
+    elbow = read_recordings(REPO_ROOT / "assets" / "contactnets_elbow")
+    found = signatures.measure(elbow.for_models(list(elbow.splits)), np.random.default_rng(0), 100)
+    assert set(found["signatures"]) == set(signatures.SPEAKS_TO)
+    for split in found["splits"].values():
+        for name in ("anisotropy", "spin", "bounce"):
+            assert split[name]["n_tosses"] >= signatures.MIN_TOSSES
+    for name, signature in found["signatures"].items():
+        assert signature["hinged"] == signatures.HINGED[name] or signature["hinged"].startswith(
+            signatures.HINGED[name] + " Too few tosses"
+        )
+        assert signature["hinged"] in signature["sentence"]
+    # too few of its frames roll over an edge with the other bar clear: said, with the counts
+    assert "Too few tosses with such frames" in found["signatures"]["rolling"]["hinged"]

@@ -114,3 +114,47 @@ def test_velocities_of_another_convention_are_measured_and_aligned_and_the_engin
     for name, split in restored.splits.items():
         assert np.allclose(split.velocities, null.split(name).velocities, atol=1e-9)
     assert "differ from the backward differences" in found["sentence"]
+
+
+ELBOW = SceneSpec("articulated", friction=0.3, restitution=0.125, shape="elbow", bodies=2)
+
+
+def test_a_hinged_pair_falls_at_g_at_its_centre_of_mass_and_a_slow_clock_shows_there(tmp_path):
+    # Two links on a hinge: the hinge force swings each link's centre of mass off the parabola, the pair's
+    # mass-weighted centre of mass stays on it.
+    elbow = read_recordings(generate_dataset(ELBOW, tmp_path / "elbow", split_sizes=SIZES, workers=1, progress=False))
+    elbow = elbow.for_models(list(elbow.splits))
+    found = free_flight.check(elbow, np.random.default_rng(0), draws=200)
+    g = np.linalg.norm(elbow.gravity)
+    for part in found["splits"].values():
+        assert part["n_trajectories"] >= 3 and part["n_frames"] > 30
+        assert part["scale"] == pytest.approx(1.0, abs=free_flight.MARGIN)
+    assert not found["differs"] and found["gravity_evidence"] == free_flight.RULED_OUT
+    split = elbow.split("train")
+    free = free_flight.free_frames(elbow, split)
+    assert free.any() and (free[..., 0] == free[..., 1]).all()  # a tree flies as one
+    _, body = free_flight.centre_motion(elbow, split)
+    _, pair = free_flight.system_motion(elbow, split)
+    each = np.median(np.linalg.norm(body[free[..., 0]] - elbow.gravity, axis=-1), axis=0)  # per link
+    both = np.median(np.linalg.norm(pair[free[..., 0]][:, 0] - elbow.gravity, axis=-1))
+    assert (each > free_flight.MARGIN * g).all() and both < 0.1 * free_flight.MARGIN * g
+    # The same tosses recorded with a frame interval sqrt(1.05) times the true one: an apparent gravity g / 1.05.
+    slow = dataclasses.replace(elbow, meta={**elbow.meta, "dt": elbow.dt * np.sqrt(1.05)})
+    found = free_flight.check(slow, np.random.default_rng(0), draws=200)
+    assert found["scale"] == pytest.approx(1 / 1.05, abs=2e-3)
+    assert found["differs"] and found["confirmed"] and found["apparent_gravity"]
+
+
+def test_the_real_elbow_is_seen_in_free_flight_on_every_split_and_falls_near_g():
+    elbow = read_recordings(REPO_ROOT / "assets" / "contactnets_elbow")
+    elbow = elbow.for_models(list(elbow.splits))
+    found = free_flight.check(elbow, np.random.default_rng(0), draws=200)
+    for part in found["splits"].values():
+        assert part["n_trajectories"] > 50 and part["n_frames"] > 1000
+    assert found["scale"] == pytest.approx(1.0, abs=0.05)
+    assert "Too few" not in found["sentence"]
+    # The publisher's velocities are backward differences; the free frames are picked stretch by stretch, so the
+    # tracking noise of a frame does not pick which frames count, and no offset is made up.
+    from contactbench.diagnosis import velocities
+
+    assert not velocities.check(elbow, np.random.default_rng(0), draws=200)["aligned"]

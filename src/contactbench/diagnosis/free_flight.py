@@ -7,6 +7,10 @@ the recordings' time base or length scale is off (a true frame interval of sqrt(
 a / g), or meta.gravity itself is wrong; MuJoCo can express all three as a scaled gravity (library effect
 `gravity_scale`). A k above zero is drag (wind is drag in moving air): library effects `air_drag` / `wind`. Fit on
 train, decide on val, confirm on test.
+
+Bodies on joints fly as one system: the hinge force acts between them, so each one's centre of mass swings off the
+parabola while the tree's mass-weighted centre of mass stays on it (the joint's forces cancel in the tree's total
+momentum). A tree flies when every one of its bodies does, and gives one row per frame; a free body is a tree of one.
 """
 
 from __future__ import annotations
@@ -16,11 +20,13 @@ import numpy as np
 from contactbench import rotations
 from contactbench.kinematics import world_vertices
 from contactbench.recordings import Recordings, Split
+from contactbench.sim.bullet_scene import trees
 
 SPLITS = ("train", "val", "test")
 # A frame counts as free flight when, at it and at both neighbours, the body's lowest vertex is this fraction of its
 # width above the floor (2 cm for the 10.5 cm real cube; contact and the tracker's filtering stay out of it) and no
-# other body's bounding sphere comes within that distance of its own.
+# other body's bounding sphere comes within that distance of its own; for bodies on joints, every body of the tree
+# (bodies of one tree may touch each other: their forces cancel in the tree's momentum).
 CLEARANCE = 0.2
 # The deviation must be at least this fraction of |meta.gravity| to count (the decision rule's practical margin).
 MARGIN = 0.005
@@ -59,8 +65,15 @@ def least_squares_by_toss(
     return np.einsum("dij,dj->di", np.linalg.pinv(np.einsum("dn,nij->dij", weights, normal)), weights @ moment)
 
 
+def systems(dataset: Recordings) -> list[tuple[int, ...]]:
+    """The bodies that fly as one: each tree of jointed bodies (its root first), a free body alone, in the order of
+    their roots."""
+    return [(tree.root, *(dataset.joints[j].child for j in tree.joints)) for tree in trees(dataset)]
+
+
 def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
-    """[N, T, K] True where body k is in free flight (see CLEARANCE) at frames t-1, t and t+1 (False at the ends)."""
+    """[N, T, K] True where body k's tree (body k alone if free) is in free flight (see CLEARANCE) at frames t-1, t
+    and t+1 (False at the ends)."""
     poses = np.nan_to_num(split.poses)
     widths = dataset.widths()
     clear = np.zeros(poses.shape[:3], dtype=bool)
@@ -70,18 +83,46 @@ def free_frames(dataset: Recordings, split: Split) -> np.ndarray:
         radii.append(float(np.linalg.norm(vertices, axis=1).max()))
         lowest = world_vertices(poses[:, :, k], vertices)[..., 2].min(axis=-1) - dataset.floor_z
         clear[:, :, k] = lowest > CLEARANCE * widths[k]
+    groups = systems(dataset)
+    tree_of = {k: members for members in groups for k in members}
     for k in range(dataset.n_bodies):
         for j in range(dataset.n_bodies):
-            if j != k:
+            if j not in tree_of[k]:
                 gap = np.linalg.norm(poses[:, :, k, :3] - poses[:, :, j, :3], axis=-1) - radii[k] - radii[j]
                 clear[:, :, k] &= gap > CLEARANCE * widths[k]
     clear &= split.valid_mask()[..., None]
     clear &= np.isfinite(split.poses).all(axis=-1)
+    for members in groups:
+        if len(members) > 1:
+            clear[:, :, members] = clear[:, :, members].all(axis=-1, keepdims=True)
     free = np.zeros_like(clear)
     free[:, 1:-1] = clear[:, :-2] & clear[:, 1:-1] & clear[:, 2:]
     gravity = np.asarray(dataset.gravity, dtype=float)
-    falling = centre_motion(dataset, split)[1] @ gravity / float(gravity @ gravity)  # [N, T, K] in units of g
-    return free & (falling >= SUPPORTED)
+    falling = system_motion(dataset, split)[1] @ gravity / float(gravity @ gravity)  # [N, T, S] in units of g
+    for s, members in enumerate(groups):
+        if len(members) == 1:
+            free[:, :, members[0]] &= falling[:, :, s] >= SUPPORTED
+        else:
+            free[:, :, members] &= _supported_stretches(free[:, :, members[0]], falling[:, :, s])[..., None]
+    return free
+
+
+def _supported_stretches(free: np.ndarray, falling: np.ndarray) -> np.ndarray:
+    """[N, T] the free frames [N, T] of the stretches of flight whose mean fall (in units of g) is SUPPORTED or more.
+
+    A tree is judged stretch by stretch, not frame by frame: a frame's second difference carries the tracking noise
+    of every body's pose, and cutting it on one side only biases the fall that is left (the real elbow's would come
+    out well above g); a stretch's mean is the change of velocity across it, which that noise hardly moves. Free
+    bodies keep the frame-by-frame rule their recordings were calibrated with."""
+    starts = free & ~np.concatenate([np.zeros_like(free[:, :1]), free[:, :-1]], axis=1)
+    stretch = np.cumsum(starts.reshape(-1)).reshape(free.shape) - 1  # each free frame's stretch
+    count = int(starts.sum())
+    totals, sizes = np.zeros(count), np.zeros(count)
+    np.add.at(totals, stretch[free], falling[free])
+    np.add.at(sizes, stretch[free], 1)
+    kept = np.zeros_like(free)
+    kept[free] = (totals / np.maximum(sizes, 1))[stretch[free]] >= SUPPORTED
+    return kept
 
 
 def centre_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
@@ -100,14 +141,31 @@ def centre_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.nda
     return velocity, acceleration
 
 
+def system_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.ndarray]:
+    """Velocities and accelerations [N, T, S, 3] of each system's (`systems`) mass-weighted centre of mass, as
+    centre_motion's; a free body's are its own, untouched."""
+    velocity, acceleration = centre_motion(dataset, split)
+    moving, falling = [], []
+    for members in systems(dataset):
+        if len(members) == 1:
+            moving.append(velocity[:, :, members[0]])
+            falling.append(acceleration[:, :, members[0]])
+            continue
+        masses = np.array([dataset.bodies[k].mass for k in members])
+        share = masses / masses.sum()
+        moving.append(np.einsum("k,ntki->nti", share, velocity[:, :, members]))
+        falling.append(np.einsum("k,ntki->nti", share, acceleration[:, :, members]))
+    return np.stack(moving, axis=2), np.stack(falling, axis=2)
+
+
 def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: int, confidence: float = 0.95) -> dict:
     """One split's free-flight accelerations as a constant plus a drag, a = c - k |v| v, fitted by least squares over
     every free-flight frame, with standard errors and percentile intervals from resampling trajectories (the frames of
     one toss count together). c is the fall net of the drag: drag shifts a plain mean (twice the library's reference
     drag made a cube fall at 0.94 g on average), c stays at g. And k times the median squared speed, the deceleration
-    the drag causes at a typical speed."""
-    free = free_frames(dataset, split)
-    velocity, acceleration = centre_motion(dataset, split)
+    the drag causes at a typical speed. A tree of jointed bodies gives one row per frame, its centre of mass's."""
+    free = free_frames(dataset, split)[:, :, [members[0] for members in systems(dataset)]]  # [N, T, S]
+    velocity, acceleration = system_motion(dataset, split)
     used, rows = np.unique(np.nonzero(free)[0], return_inverse=True)  # the tosses that fly; each frame's toss
     if len(used) < 2:
         return {"n_trajectories": int(len(used)), "n_frames": int(free.sum())}
