@@ -23,6 +23,7 @@ SMALL = [
     "budget.diagnose.lsq_iterations=8",
     "budget.diagnose.front_runners=2",
     "budget.diagnose.bootstrap=500",
+    "engines=[mujoco]",  # the contact-law comparison has its own tests (test_contact_law.py)
 ]
 SIZES = {"train": 30, "val": 40, "test": 20}
 

@@ -29,13 +29,13 @@ class ResidualFit:
         self.scale = scale
 
     def residuals(self, hypothesis: Hypothesis, internal: np.ndarray) -> np.ndarray:
-        """[B, M, L, K, 6] for internal parameter vectors [B, P]; parameter sets MuJoCo rejects score as unstable."""
+        """[B, M, L, K, 6] for internal parameter vectors [B, P]; sets the engine rejects score as unstable."""
         internal = np.atleast_2d(internal)
         params, valid = [], []
         for values in internal:
             try:
                 candidate = hypothesis.contact_parameters(values)
-                self.simulator.rollouts.model(candidate)  # compiles: MuJoCo may refuse, e.g. an impossible inertia
+                self.simulator.rollouts.check(candidate)  # MuJoCo may refuse to compile, e.g. an impossible inertia
                 params.append(candidate)
                 valid.append(True)
             except Exception as error:  # noqa: BLE001 - any refusal is a bad candidate, not a crash

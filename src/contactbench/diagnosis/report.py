@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from contactbench import atomic
+from contactbench.diagnosis import contact_law_report
 from contactbench.diagnosis.phases import PHASES, label_phases
 from contactbench.diagnosis.segments import COMPONENTS
 from contactbench.evaluation.figures import new_figure, save_figure
@@ -45,7 +46,7 @@ def budget_sentence(document: dict) -> str:
 
 
 def summary_sentence(document: dict) -> str:
-    text = _verdict_sentence(document)
+    text = contact_law_report.short(document.get("contact_law")) + _verdict_sentence(document)
     falling = document.get("free_flight") or {}
     found = []
     if falling.get("confirmed"):
@@ -276,6 +277,9 @@ def _markdown(document: dict, figures: list[Path]) -> str:
         f"{rule['rule']}. Margins: {rule['margin']:.0%} (first round and the open-world correction), "
         f"{rule['later_margin']:.0%} (later rounds).",
         "",
+        *contact_law_report.lines(
+            document.get("contact_law"), document.get("naming_base", "mujoco"), document.get("seconds", {})
+        ),
         "## First, model-free: free flight",
         "",
         document["free_flight"]["sentence"],

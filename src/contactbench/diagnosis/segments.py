@@ -9,8 +9,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.diagnosis.phases import FREE, IMPACT, PHASES, clearances, label_phases, recorded_velocities
 from contactbench.recordings import Recordings, Split
-from contactbench.sim.mujoco_scene import ContactParameters
-from contactbench.sim.rollout import MujocoRollouts
+from contactbench.sim.engines import engine
 
 # Residual components, world frame: linear (normal = along gravity, tangential), angular (normal, tangential),
 # and the angular residual in the body frame.
@@ -98,18 +97,26 @@ def residual_parts(segments: Segments, predicted: np.ndarray) -> dict[str, np.nd
 
 
 class SegmentSimulator:
-    """Residual vectors of many parameter sets on the same segments, all in one batched MuJoCo call."""
+    """Residual vectors of many parameter sets on the same segments, all in one batched call of one engine (MuJoCo
+    unless named: sim/engines.py)."""
 
-    def __init__(self, dataset: Recordings, segments: Segments, nthread: int | None = None):
+    def __init__(
+        self, dataset: Recordings, segments: Segments, nthread: int | None = None, engine_name: str = "mujoco"
+    ):
         self.segments = segments
-        self.rollouts = MujocoRollouts(dataset, nthread)
+        self.engine_name = engine_name
+        self.rollouts = engine(engine_name).rollouts(dataset, nthread)
 
-    def predict(self, params: list[ContactParameters]) -> tuple[np.ndarray, np.ndarray]:
+    def close(self) -> None:
+        """Release the engine's worker processes (stepped engines); MuJoCo's threads need nothing."""
+        self.rollouts.close()
+
+    def predict(self, params: list) -> tuple[np.ndarray, np.ndarray]:
         """Predicted poses [B, M, L, K, 7] and which items blew up [B, M]."""
         result = self.rollouts.simulate(params, self.segments.poses0, self.segments.velocities0, self.segments.length)
         return result.poses, result.unstable
 
-    def residuals(self, params: list[ContactParameters]) -> np.ndarray:
+    def residuals(self, params: list) -> np.ndarray:
         """[B, M, L, K, 6]: position residual over half the width, rotation residual (rad), per frame and body.
 
         A rollout is judged by where it goes, capped at UNSTABLE_RESIDUAL, which every frame from a divergence on

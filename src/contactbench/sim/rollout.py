@@ -125,6 +125,9 @@ class Rollouts(ABC):
         """Frames 1..n_steps (dt apart) after poses0 [N, K, 7] / velocities0 [N, K, 6], for B parameter sets (one set:
         B = 1)."""
 
+    def check(self, params) -> None:  # noqa: B027 (engines whose parameters validate themselves check nothing more)
+        """Raise for a parameter set the engine refuses before any rollout (MuJoCo: one that does not compile)."""
+
     def renew_data(self) -> None:  # noqa: B027 (engines without per-call state have nothing to renew)
         """Start afresh after a call that timed out (its native work may still be running)."""
 
@@ -184,6 +187,9 @@ class MujocoRollouts(Rollouts):
         if key not in self._other_data:
             self._other_data[key] = [mujoco.MjData(model) for _ in range(self.nthread)]
         return self._other_data[key]
+
+    def check(self, params: ContactParameters) -> None:
+        self.model(params)
 
     def model(self, params: ContactParameters) -> mujoco.MjModel:
         """The compiled scene for `params`, cached (least recently used go first) for repeated parameter sets."""

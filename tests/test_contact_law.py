@@ -1,0 +1,92 @@
+"""The contact law first (diagnosis.contact_law): every engine fitted alike, the generator's own law wins on its data,
+and an engine that refuses the scene is skipped in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from contactbench.diagnosis import contact_law
+from contactbench.diagnosis.pipeline import Budget, Diagnosis
+from contactbench.errors import ContactbenchError
+from contactbench.generation.generator import generate_dataset
+from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.recordings import read_recordings
+from contactbench.sim.bullet_scene import BulletParameters
+
+TINY = Budget(
+    fit_trajectories=12,
+    val_trajectories=16,
+    base_evaluations=24,
+    batch=8,
+    lsq_iterations=4,
+    bootstrap=300,
+    law_trajectories=15,
+    law_evaluations=24,
+)
+
+
+def test_an_engine_base_searches_its_contact_law_only_in_the_option_it_stands_for():
+    rigid, compliant = contact_law.engine_bases("bullet", n_bodies=2, n_joints=0)
+    assert rigid.label == "bullet (rigid contact)" and compliant.label == "bullet (compliant contact)"
+    searched = {d.name for d in rigid.searched}
+    # rolling and spinning friction are library effects; stiffness and damping act only in the compliant option
+    assert searched == {"object_friction_0", "object_friction_1", "restitution_0", "restitution_1"}
+    assert {d.name for d in compliant.searched} == searched | {"contact_stiffness", "contact_damping_ratio"}
+    lower, upper = compliant.bounds()
+    parameters = compliant.contact_parameters(upper)
+    assert isinstance(parameters, BulletParameters)
+    assert parameters.contact_stiffness == pytest.approx(1e8)  # a log-scaled dimension is searched as its logarithm
+    assert parameters.spinning_friction == parameters.rolling_friction == pytest.approx(1e-6)
+    assert rigid.contact_parameters(rigid.start()).contact_stiffness is None
+    outside = rigid.contact_parameters(rigid.bounds()[1] + 5.0)  # a step past the box is clipped back into it
+    assert max(outside.object_friction) == 1.0 and max(outside.restitution) == 1.0
+    assert np.all(lower <= compliant.start()) and np.all(compliant.start() <= upper)
+
+
+@pytest.mark.parametrize("engines", [("bullet",), ("mujoco", "ode"), ("mujoco", "mujoco")])
+def test_a_list_of_engines_the_comparison_cannot_take_is_one_line(engines):
+    with pytest.raises(ContactbenchError, match=r"engines=.*mujoco among them") as error:
+        contact_law.check_engines(engines)
+    assert "\n" not in str(error.value)
+
+
+def test_pybullet_made_tosses_are_best_fitted_by_pybullet_and_mujoco_misses_at_impacts(tmp_path):
+    """The generator is PyBullet's rigid contact: its law must win on val, and MuJoCo's loss against it must sit at
+    impacts (two engines' impact laws differ most) and be confirmed on the held-out full rollouts."""
+    spec = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)
+    path = generate_dataset(
+        spec, tmp_path / "null", split_sizes={"train": 15, "val": 16, "test": 20}, workers=1, progress=False
+    )
+    steps = Diagnosis(read_recordings(path).for_models(["train", "val", "test"]), TINY)
+    base, values = steps.fit_base()
+    section, best = contact_law.compare(steps, base, values, ("mujoco", "bullet"))
+    assert best.engine == "bullet" and section["best_engine"] == "bullet"  # rigid or compliant, at this budget
+    mujoco = next(law for law in section["laws"] if law["law"] == "mujoco")
+    against = mujoco["against_best"]
+    assert against["confirmed"] and against["val"]["ci95"][0] > 0.3
+    phases = against["val"]["by_phase"]
+    assert max(phases, key=lambda p: phases[p]["share"]) == "impact"
+    assert sum(share["share"] for share in phases.values()) == pytest.approx(against["val"]["improvement"])
+    assert f"{best.label} closes" in section["finding"] and "confirmed on test" in section["finding"]
+    assert set(steps.timings) >= {"contact_law_s", contact_law.fit_seconds_key(best.label)}
+
+
+def test_an_engine_that_refuses_the_scene_is_skipped_in_one_line(tmp_path):
+    spec = SceneSpec(name="nonconvex", friction=0.3, restitution=0.125, shape="ring")
+    generate_dataset(
+        spec,
+        tmp_path / "ring",
+        split_sizes={"train": 3, "val": 2, "test": 2},
+        settings=BulletSettings(frames=40),
+        workers=1,
+        progress=False,
+    )
+    small = Budget(fit_trajectories=3, val_trajectories=2, base_evaluations=4, batch=4, lsq_iterations=1, bootstrap=50)
+    steps = Diagnosis(read_recordings(tmp_path / "ring").for_models(["train", "val", "test"]), small)
+    base, values = steps.fit_base()
+    section, best = contact_law.compare(steps, base, values, ("mujoco", "drake"))
+    assert best.engine == "mujoco" and [law["law"] for law in section["laws"]] == ["mujoco"]
+    (skipped,) = section["skipped"]
+    assert skipped["engine"] == "drake" and "non-convex" in skipped["reason"] and "\n" not in skipped["reason"]
+    assert section["finding"] == "mujoco is the only contact law that simulates this scene"
