@@ -6,13 +6,14 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from contactbench import runs
 from contactbench.cli import check_command_line, guarded
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="evaluate")
 @guarded
 def main(cfg: DictConfig) -> dict:
+    from contactbench import runs  # here, not above: --help answers without importing torch and the engines
+
     return runs.evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
 
 

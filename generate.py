@@ -6,13 +6,14 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from contactbench import folders, runs, settings
 from contactbench.cli import check_command_line, guarded
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="generate")
 @guarded
 def main(cfg: DictConfig) -> None:
+    from contactbench import folders, runs, settings  # here, not above: --help answers without importing torch
+
     if runs.crossed_variant(cfg):
         return
     settings.check(cfg)

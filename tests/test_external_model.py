@@ -4,11 +4,16 @@ runs through train.py, evaluate.py and the report, and is scored the same when r
 from __future__ import annotations
 
 import json
+import os
+import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
 
 from test_pipeline import run_entry_point
+
+from contactbench.config import REPO_ROOT
 
 EXTERNAL = Path(__file__).parent / "external_model"
 
@@ -52,3 +57,56 @@ def test_a_model_outside_the_package_trains_evaluates_and_reports_as_fitted(tmp_
     entry.write_text("{not json")
     refused = run_entry_point("evaluate.py", [*model, "split=test", f"hydra.run.dir={tmp_path / 'eval4'}"], tmp_path)
     assert refused.returncode == 2 and str(entry) in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+
+
+DOC = REPO_ROOT / "docs" / "ADDING_A_MODEL.md"
+PLACEHOLDER = "/path/to/your_project"
+
+
+def documented_files(text: str) -> dict[str, str]:
+    """The guide's code blocks that open with a comment naming their file (`# my_models/my_model.py`)."""
+    blocks = re.findall(r"^```(?:python|yaml)\n# ([\w./-]+)\n(.*?)^```", text, re.S | re.M)
+    return {name: f"# {name}\n{body}" for name, body in blocks}
+
+
+def documented_commands(text: str) -> list[list[str]]:
+    """The guide's shell lines, continuation lines joined, as words."""
+    blocks = re.findall(r"^```bash\n(.*?)^```", text, re.S | re.M)
+    lines = "\n".join(blocks).replace("\\\n", " ").splitlines()
+    return [shlex.split(line, comments=True) for line in lines if shlex.split(line, comments=True)]
+
+
+def test_the_guide_s_model_runs_as_written(tmp_path):
+    """docs/ADDING_A_MODEL.md's files, written where it says, trained by its own command (budget=smoke)."""
+    text = DOC.read_text()
+    project = tmp_path / "your_project"
+    files = documented_files(text)
+    assert {Path(name).suffix for name in files} == {".py", ".yaml"}, sorted(files)
+    for name, body in files.items():
+        (project / name).parent.mkdir(parents=True, exist_ok=True)
+        (project / name).write_text(body)
+    commands = documented_commands(text)
+    (export,) = [words for words in commands if words[0] == "export"]
+    assert export[1].startswith("PYTHONPATH=")
+    python_path = export[1].split("=", 1)[1].replace(PLACEHOLDER, str(project))
+    train = next(words for words in commands if words[:2] == ["python", "train.py"])
+    overrides = [word.replace(PLACEHOLDER, str(project)).replace("budget=quick", "budget=smoke") for word in train[2:]]
+    run = tmp_path / "run"
+    trained = run_train([*overrides, f"hydra.run.dir={run}"], tmp_path, python_path)
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    fitted = json.loads((run / "fitted.json").read_text())
+    assert fitted["model"] == "my_model" and fitted["state"], fitted
+    assert (run / "test" / "metrics.json").is_file()
+    # Without PYTHONPATH the model's module cannot be imported: one line that says so and what to do.
+    again = run_train([*overrides, f"hydra.run.dir={tmp_path / 'run2'}"], tmp_path, None)
+    message = again.stderr.strip()
+    assert again.returncode == 2 and len(message.splitlines()) == 1, message
+    assert "my_models.my_model.MyModel" in message and "PYTHONPATH" in message, message
+
+
+def run_train(overrides: list[str], tmp_path: Path, python_path: str | None) -> subprocess.CompletedProcess:
+    """train.py in a fresh shell's environment: PYTHONPATH only as the guide sets it."""
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
+    env.update({"WANDB_MODE": "disabled", **({"PYTHONPATH": python_path} if python_path else {})})
+    command = [sys.executable, str(REPO_ROOT / "train.py"), *overrides, f"paths.log_dir={tmp_path}/outputs"]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)

@@ -23,8 +23,9 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Glob
 from omegaconf import OmegaConf, open_dict
 
-from contactbench import runs, settings
+from contactbench import helptext, runs, settings
 from contactbench.config import CONFIG_DIR, REPO_ROOT
+from contactbench.generation.effects import EFFECT_NAMES
 
 README = REPO_ROOT / "README.md"
 PAGES = [README, *sorted((REPO_ROOT / "docs").glob("*.md"))]
@@ -327,13 +328,88 @@ def test_a_generated_recordings_folder_is_accepted_after_its_generate_line():
 
 
 @pytest.mark.parametrize("script", sorted(ENTRY_POINTS))
-def test_help_says_what_each_entry_point_does_in_one_paragraph(script):
+def test_help_says_what_each_entry_point_does_on_one_screen(script):
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose(config_name=ENTRY_POINTS[script], return_hydra_config=True)
-    text = cfg.hydra.help.template
-    assert text.startswith(f"{script} ") and "Main options:" in text and "--hydra-help" in text
-    assert "\n\n" not in text.strip() and len(text.splitlines()) <= 10  # one short paragraph
+    text = cfg.hydra.help.template  # resolved: the option lists contactbench.helptext reads from conf/
+    assert text.startswith(f"{script} ") and "Options are key=value:" in text and "--hydra-help" in text
+    assert "\n\n" not in text.strip() and len(text.splitlines()) <= 16  # one screen, no blank line
+    assert max(len(line) for line in text.splitlines()) <= 120
     assert "$" not in text  # Hydra substitutes $NAMES in the template: a stray one would raise
+
+
+# ---------------------------------------------------------------- counts the prose states, against the code
+
+PAPER_DATASETS = ("frictioncubes", "bouncycubes", "polyhedra", "multicubes")  # Table 1
+FUTURE_DATASETS = ("nonconvex", "terrain", "articulated")  # the paper's §6
+TESTS_STATED = re.compile(r"about (\d+) tests")
+TESTS_SLACK = 0.1  # the README rounds; a tenth more or fewer tests and it says so
+
+
+def number(word: str) -> int | None:
+    return int(word) if word.isdigit() else (helptext.WORDS.index(word) if word in helptext.WORDS else None)
+
+
+def variants_of(datasets: tuple[str, ...]) -> int:
+    return sum(1 for path in (CONFIG_DIR / "variant").glob("*.yaml") if path.stem.startswith(datasets))
+
+
+def pages_and_help() -> dict[str, str]:
+    texts = {page.name: page.read_text() for page in PAGES}
+    texts.update({path.name: path.read_text() for path in sorted((CONFIG_DIR / "hydra" / "help").glob("*.yaml"))})
+    return {name: re.sub(r"\s+", " ", text) for name, text in texts.items()}  # a claim may break across lines
+
+
+def test_the_effect_count_the_docs_state_is_the_library_s():
+    claims = [
+        (name, found)
+        for name, text in pages_and_help().items()
+        for pattern in (
+            r"library of (\w+)(?: \w+)? effects",
+            r"over (\w+) library effects",
+            r"\((\w+) effects in MuJoCo",
+        )
+        for found in re.findall(pattern, text)
+    ]
+    assert len(claims) >= 3, claims  # README, DIAGNOSIS.md, MODELS.md
+    wrong = [(name, found) for name, found in claims if number(found) != len(EFFECT_NAMES)]
+    assert not wrong, f"the library has {len(EFFECT_NAMES)} effects (generation/effects.py); the docs say {wrong}"
+
+
+def test_the_variant_counts_the_docs_state_are_conf_variant_s():
+    paper, future = variants_of(PAPER_DATASETS), variants_of(FUTURE_DATASETS)
+    counts = {paper, future, paper + future}
+    stated = r"(?<!of )\b(\w+) variants\b"  # not "21 of 23 variants": a tally of results, not a count of conf/
+    claims = [(name, found) for name, text in pages_and_help().items() for found in re.findall(stated, text)]
+    claims = [(name, found) for name, found in claims if number(found) is not None]
+    assert len(claims) >= 5, claims
+    wrong = [(name, found) for name, found in claims if number(found) not in counts]
+    assert not wrong, f"conf/variant/ has {paper} paper, {future} future-work variants; the docs say {wrong}"
+
+
+def test_the_readme_names_every_model_and_what_make_main_fits():
+    text = README.read_text()
+    table = re.findall(r"^\| `(\w+)` \|", text, re.M)
+    assert sorted(table) == sorted(path.stem for path in (CONFIG_DIR / "model").glob("*.yaml")), table
+    fitted = re.search(r"fit (\w+) models \(([^)]*)\)", re.sub(r"\s*#\s*", " ", text))
+    main = OmegaConf.load(CONFIG_DIR / "experiment" / "main.yaml").hydra.sweeper.params.model.split(",")
+    assert fitted and number(fitted.group(1)) == len(main), fitted
+    assert [name.strip() for name in fitted.group(2).split(",")] == main
+
+
+@pytest.mark.slow
+def test_the_test_count_the_readme_states_is_about_right():
+    (stated,) = [int(found) for found in TESTS_STATED.findall(README.read_text())]
+    collected = subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO_ROOT,
+    )
+    count = int(re.search(r"(\d+) tests? collected", collected.stdout).group(1))
+    print(f"{count} tests collected; the README says about {stated}")
+    assert abs(count - stated) <= TESTS_SLACK * stated, f"{count} tests collected; the README says about {stated}"
 
 
 def test_help_is_printed_by_the_entry_point():

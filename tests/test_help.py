@@ -1,0 +1,112 @@
+"""`--help` is generated from the config groups and the code (no hand-written list to fall behind), and answers before
+any heavy library is imported."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+from omegaconf import OmegaConf
+
+from contactbench.config import CONFIG_DIR, REPO_ROOT
+from contactbench.generation.effects import EFFECT_NAMES
+from contactbench.helptext import number_word
+
+# What each entry point's help must list in full: every option of these config groups.
+LISTED = {
+    "train.py": ("model", "dataset", "budget", "logger", "trainer"),
+    "evaluate.py": ("model", "dataset", "budget", "logger"),
+    "diagnose.py": ("budget",),
+    "generate.py": ("dataset",),
+}
+HELP_SECONDS = 4.0  # under 2 s on an idle 2-core machine; the slack is for a busy one
+
+
+def options(group: str) -> list[str]:
+    return sorted(path.stem for path in (CONFIG_DIR / group).glob("*.yaml"))
+
+
+def generated(dataset: str) -> bool:
+    return OmegaConf.load(CONFIG_DIR / "dataset" / f"{dataset}.yaml").dataset.scene is not None
+
+
+def help_text(script: str) -> str:
+    done = subprocess.run(
+        [sys.executable, str(REPO_ROOT / script), "--help"], capture_output=True, text=True, timeout=120, cwd=REPO_ROOT
+    )
+    assert done.returncode == 0 and done.stderr == "", done.stderr[-2000:]
+    return done.stdout
+
+
+def option_line(text: str, key: str) -> str | None:
+    """The help's `key=...` (up to the next option, three spaces on) with the lines that continue it (indented
+    further)."""
+    lines = text.splitlines()
+    found = next(((i, m) for i, line in enumerate(lines) if (m := re.search(rf"(?:^|\s){key}=", line))), None)
+    if found is None:
+        return None
+    start, match = found
+    indent = len(lines[start]) - len(lines[start].lstrip())
+    rest = lines[start + 1 :]
+    continued = next((i for i, line in enumerate(rest) if len(line) - len(line.lstrip()) <= indent), len(rest))
+    first = lines[start][match.start() :].strip().split("   ")[0]
+    return " ".join([first, *(line.strip() for line in rest[:continued])])
+
+
+@pytest.fixture(scope="module")
+def helps() -> dict[str, str]:
+    return {script: help_text(script) for script in LISTED}
+
+
+@pytest.mark.parametrize("script", sorted(LISTED))
+def test_help_lists_every_option_of_its_config_groups(helps, script):
+    text = helps[script]
+    for group in LISTED[script]:
+        line = option_line(text, group)
+        assert line is not None, f"{script} --help has no {group}= line:\n{text}"
+        wanted = [o for o in options(group) if group != "dataset" or script != "generate.py" or generated(o)]
+        listed = set(re.findall(r"[\w.]+", line.split("=", 1)[1]))
+        missing = [option for option in wanted if option not in listed]
+        assert not missing, f"{script} --help: {group}= misses {missing}"
+
+
+def test_generate_help_lists_only_what_it_can_generate(helps):
+    line = option_line(helps["generate.py"], "dataset")
+    assert "contactnets_cube" not in line and "recordings" not in line.split("(", 1)[0]
+
+
+def test_diagnose_help_counts_the_effects_the_library_has(helps):
+    counted = re.search(r"library of (\w+) effects", helps["diagnose.py"])
+    assert counted and counted.group(1) == number_word(len(EFFECT_NAMES)), helps["diagnose.py"]
+
+
+@pytest.mark.parametrize("number, word", [(1, "one"), (9, "nine"), (10, "ten"), (12, "twelve"), (22, "22")])
+def test_number_words(number, word):
+    assert number_word(number) == word
+
+
+def test_help_answers_in_under_two_seconds_before_any_heavy_import():
+    help_text("train.py")  # the first start reads files the next one finds in the page cache
+    started = time.perf_counter()
+    text = help_text("train.py")
+    elapsed = time.perf_counter() - started
+    print(f"python train.py --help: {elapsed:.2f} s")
+    assert text.startswith("train.py ")
+    assert elapsed < HELP_SECONDS, f"python train.py --help took {elapsed:.1f} s"
+    probe = textwrap.dedent(
+        """
+        import runpy, sys
+        sys.argv = ["train.py", "--help"]
+        try:
+            runpy.run_path("train.py", run_name="__main__")
+        except SystemExit:
+            pass
+        print(sorted(m for m in ("torch", "pytorch_lightning", "mujoco", "pydrake", "pybullet") if m in sys.modules))
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, cwd=REPO_ROOT)
+    assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout[-2000:] + done.stderr[-2000:]
