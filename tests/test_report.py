@@ -82,9 +82,9 @@ def test_tiny_matrix_multirun_then_report(tmp_path, monkeypatch):
     for figure in ("frictioncubes.png", "fig7c_lowest_vertex.png"):
         assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
     # the grid: one row per variant, a column per model, test position / rotation with val position beside
-    assert "| dataset | variant | mujoco_default | sysid |" in text
+    assert "| dataset | variant | budget | mujoco_default | sysid |" in text
     cell = r"[0-9.]+ / [0-9.]+ \(val [0-9.]+\)"
-    assert len(re.findall(rf"^\| frictioncubes \| friction=(0|1) \| {cell} \| {cell} \|$", text, re.M)) == 2
+    assert len(re.findall(rf"^\| frictioncubes \| friction=(0|1) \| smoke \| {cell} \| {cell} \|$", text, re.M)) == 2
     for figure in ("error_over_time_frictioncubes.png", "error_over_time_frictioncubes.svg"):
         assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
     # Table 3 only over the dimension these runs vary (friction), saying what the others need

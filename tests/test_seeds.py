@@ -76,12 +76,12 @@ def test_the_grid_shows_mean_and_range_over_seeds_and_marks_what_the_seeds_canno
     grid = grid_markdown(collect(write_runs(tmp_path, [0, 1, 2])))
     # friction=0: sysid is best (mean 0.200) and mujoco_default's seeds (0.20-0.22) lie inside its 0.15-0.25
     assert (
-        "| frictioncubes | friction=0 | 0.210 [0.200–0.220] / 0.310 [0.300–0.320] (val 0.220, n=3) † "
+        "| frictioncubes | friction=0 | – | 0.210 [0.200–0.220] / 0.310 [0.300–0.320] (val 0.220, n=3) † "
         "| **0.200 [0.150–0.250] / 0.300 [0.250–0.350] (val 0.210, n=3)** |"
     ) in grid
     # friction=1: mujoco_default's seeds (0.33-0.35) are all worse than sysid's worst (0.30): no mark
     assert (
-        "| frictioncubes | friction=1 | 0.340 [0.330–0.350] / 0.440 [0.430–0.450] (val 0.350, n=3) "
+        "| frictioncubes | friction=1 | – | 0.340 [0.330–0.350] / 0.440 [0.430–0.450] (val 0.350, n=3) "
         "| **0.253 [0.200–0.300] / 0.353 [0.300–0.400] (val 0.263, n=3)** |"
     ) in grid
     assert "† marks a model whose seeds' test position errors span a range that overlaps the best's" in grid
@@ -129,10 +129,10 @@ def test_the_figures_draw_the_seeds_spread_and_one_seed_as_before(tmp_path, monk
 def test_a_one_seed_report_reads_as_before(tmp_path, record_seed):
     text = write_report(write_runs(tmp_path, [0], record_seed), renders=False).read_text()
     assert section(text, "Test position error") == (
-        "\n| dataset | variant | mujoco_default | sysid |\n"
-        "|---|---|---|---|\n"
-        "| frictioncubes | friction=0 | 0.200 / 0.300 (val 0.210) | 0.150 / 0.250 (val 0.160) |\n"
-        "| frictioncubes | friction=1 | 0.330 / 0.430 (val 0.340) | 0.300 / 0.400 (val 0.310) |\n\n"
+        "\n| dataset | variant | budget | mujoco_default | sysid |\n"
+        "|---|---|---|---|---|\n"
+        "| frictioncubes | friction=0 | – | 0.200 / 0.300 (val 0.210) | 0.150 / 0.250 (val 0.160) |\n"
+        "| frictioncubes | friction=1 | – | 0.330 / 0.430 (val 0.340) | 0.300 / 0.400 (val 0.310) |\n\n"
     )
     assert section(text, "Table 3, recomputed").startswith(
         "\n'Yes' when a method's mean test position error changes by more than 25% of its smallest value across the "

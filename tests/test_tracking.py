@@ -26,7 +26,7 @@ def test_logger_records_scores(tmp_path, recorded_dataset, logger, monkeypatch):
         "evaluate", ["dataset=recordings", f"recordings={recorded_dataset}", f"logger={logger}", "split=val"], tmp_path
     )
     document = runs.evaluate(cfg, tmp_path / "run")
-    assert document["dataset"] == "recordings" and document["variant"] == "falling"
+    assert document["dataset"] == "recordings" and document["variant"].startswith("falling-")
     assert document["interbody_penetration_m"] is not None and document["pairwise_collisions"] is not None
     if logger == "csv":
         text = (tmp_path / "run" / "csv" / "metrics.csv").read_text()
@@ -51,11 +51,11 @@ def test_mlflow_holds_curated_params_tags_curves_and_artifacts(tmp_path, recorde
     (run,) = client.search_runs(client.get_experiment_by_name("contactbench").experiment_id)
     params = run.data.params
     assert params["model.name"] == "sysid" and params["budget.name"] == "smoke" and params["budget.evaluations"] == "16"
-    assert params["dataset.variant"] == "falling" and params["observation.noise_mm"] == "0.0"
+    assert params["dataset.variant"].startswith("falling-") and params["observation.noise_mm"] == "0.0"
     assert not [key for key in params if key.startswith(("budget.gnn", "budget.hybrid", "hydra", "paths"))]
     assert len(params) < 40
     tags = run.data.tags
-    assert tags["run"] == "sysid/recordings/falling/smoke" and tags["task"] == "train"
+    assert tags["run"] == f"sysid/recordings/{params['dataset.variant']}/smoke" and tags["task"] == "train"
     assert tags["val/n_trajectories"] == "3" and "val/rollout_seconds" in tags
     metrics = run.data.metrics
     assert "val/pos_err" in metrics and "val/n_trajectories" not in metrics and "hp_metric" not in metrics

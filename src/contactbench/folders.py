@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import get_class
+from hydra.utils import get_object
 from omegaconf import DictConfig, OmegaConf
 
 from contactbench import atomic
@@ -32,7 +32,8 @@ def run_signature(cfg: DictConfig) -> dict:
     model.pop("budgets", None)  # the budget in use is resolved into the model's fields; the others do not matter
     signature = {
         "model": model,
-        "dataset": str(cfg.dataset.path),
+        # A user's recordings are what their files hold (the variant is their content's key), wherever they lie.
+        "dataset": f"recordings {cfg.dataset.variant}" if cfg.dataset.name == "recordings" else str(cfg.dataset.path),
         "context_frames": int(cfg.context_frames),
         "seed": int(cfg.seed),
     }
@@ -43,15 +44,53 @@ def run_signature(cfg: DictConfig) -> dict:
     return signature
 
 
+# What a refused command can do instead: train.py writes wherever hydra.run.dir says; evaluate.py writes wherever
+# hydra.run.dir says too, but scores the run that train_dir names.
+ADVICE = {
+    "resume": "Train in another folder with hydra.run.dir=FOLDER, or replace that run with resume=false",
+    "score the model of": "Name the train run of these settings with train_dir=FOLDER",
+}
+
+
+def same_signature(cfg: DictConfig, run_dir: Path) -> bool:
+    """Whether run_dir holds no signature, or this command's."""
+    recorded = Path(run_dir) / SIGNATURE
+    return not recorded.is_file() or _read_signature(recorded) == json.loads(json.dumps(run_signature(cfg)))
+
+
 def check_signature(cfg: DictConfig, run_dir: Path, action: str) -> None:
     recorded = Path(run_dir) / SIGNATURE
-    if recorded.is_file() and _read_signature(recorded) != json.loads(json.dumps(run_signature(cfg))):
-        raise FolderRefused(
-            f"{recorded}: the run there was made with other settings (model, budget, dataset, observation, "
-            "context_frames or seed) "
-            f"than this command; cannot {action} it. Use another folder (hydra.run.dir=...)"
-            + (" or resume=false to start over" if action == "resume" else "")
-        )
+    if same_signature(cfg, run_dir):
+        return
+    differences = signature_differences(_read_signature(recorded), json.loads(json.dumps(run_signature(cfg))))
+    shown = "; ".join(differences[:3]) + (f"; and {len(differences) - 3} more" if len(differences) > 3 else "")
+    raise FolderRefused(
+        f"{recorded}: the run there was made with other settings than this command ({shown}); cannot {action} it. "
+        + ADVICE.get(action, "Use another folder")
+    )
+
+
+def signature_differences(recorded: object, wanted: dict) -> list[str]:
+    """'key: value there, value here' for every setting two signatures differ in, by the config key a user would
+    override (a budget by the model fields it sets)."""
+    there, here = _flat(recorded), _flat(wanted)
+    keys = [key for key in sorted(set(there) | set(here)) if there.get(key, _UNSET) != here.get(key, _UNSET)]
+    if "model.name" in keys:  # another model: its name says it, not every field the two configs do not share
+        keys = [key for key in keys if key == "model.name" or not key.startswith("model.")]
+    return [f"{key}: {_shown(there, key)} there, {_shown(here, key)} here" for key in keys]
+
+
+_UNSET = object()
+
+
+def _flat(tree: object, prefix: str = "") -> dict:
+    if isinstance(tree, dict) and (tree or not prefix):
+        return {key: value for name, item in tree.items() for key, value in _flat(item, f"{prefix}{name}.").items()}
+    return {prefix[:-1] or "signature": tree}
+
+
+def _shown(values: dict, key: str) -> str:
+    return "unset" if key not in values else _clip(json.dumps(values[key]), 60)
 
 
 def _read_signature(path: Path) -> object:
@@ -81,6 +120,14 @@ def check(cfg: DictConfig, output_dir: Path, task: str) -> None:
             f"{output_dir / SIGNATURE}: this folder holds a train run; {task} would write into it "
             "(expected a folder of its own: leave hydra.run.dir at its default or name a new folder)"
         )
+
+
+def release(output_dir: Path) -> None:
+    """Undo a train run's claim on its folder when it failed before leaving anything to resume (no checkpoint, no
+    fitted.json): its signature would otherwise refuse the next command, e.g. the same run with its YAML fixed."""
+    output_dir = Path(output_dir)
+    if not any((output_dir / "checkpoints").rglob("*.ckpt")) and not (output_dir / "fitted.json").exists():
+        (output_dir / SIGNATURE).unlink(missing_ok=True)
 
 
 def record(cfg: DictConfig, output_dir: Path, task: str) -> None:
@@ -118,9 +165,9 @@ def _check_one_checkpoint(cfg: DictConfig, path: Path) -> None:
         raise FolderRefused(f"{path}: holds a {type(checkpoint).__name__} (expected a Lightning checkpoint dict)")
     states = checkpoint.get("callbacks") or {}
     for node in (cfg.model.get("callbacks") or {}).values():
-        callback = get_class(node._target_)
-        if not hasattr(callback, "check_state"):
-            continue
+        callback = get_object(node._target_)
+        if not isinstance(callback, type) or not hasattr(callback, "check_state"):
+            continue  # a factory (a progress reporter) or a class that keeps no state worth checking
         key = callback.__qualname__
         if key not in states:
             raise FolderRefused(

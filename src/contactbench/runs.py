@@ -13,7 +13,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from contactbench import atomic, folders, restore, settings, tracking
+from contactbench import atomic, folders, restore, settings, tracking, variants
 from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
@@ -90,7 +90,14 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> restore.Observed:
     them as cfg.observation says (noise, frame stride); synthetic data are scored against the clean recording."""
     path = Path(cfg.dataset.path)
     if not (path / "meta.json").exists() and cfg.dataset.scene is not None:
-        log.info("%s not found: generating it", path)
+        sizes = cfg.generation.split_sizes
+        log.warning(
+            "%s not found: generating it now (%s %s tosses, as generate.py would)%s",
+            path,
+            "/".join(str(size) for size in sizes.values()),
+            "/".join(sizes),
+            "; not a paper variant" if variants.paper_variant(cfg.dataset.name, cfg.dataset.variant) is False else "",
+        )
         generate(cfg)
     return restore.observed(cfg, read_recordings(path, splits))
 
@@ -206,6 +213,7 @@ def _score_and_write(
     cfg: DictConfig, model: ContactModel, observed: restore.Observed, split: str, out_dir: Path, logger
 ) -> dict:
     dataset = observed.dataset
+    paper = variants.paper_variant(cfg.dataset.name, cfg.dataset.variant)
     score = score_model(
         model,
         dataset,
@@ -217,7 +225,10 @@ def _score_and_write(
         annotations={
             **observed.observation,
             "seed": int(cfg.seed),
+            "budget": str(cfg.budget.name),
+            "task": str(cfg.task_name),  # which command made this row: the report keeps one of a repeated row
             "variant_values": dict(cfg.dataset.get("values") or {}),
+            **({} if paper is None else {"paper_variant": paper}),
         },
     )
     for key, value in score.metrics.summary.items():
@@ -255,15 +266,18 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     observed = load_dataset(cfg, splits)
     dataset = observed.dataset
     folders.record(cfg, output_dir, "train")  # the dataset is readable and long enough: the run starts here
-    logger = tracking.make_logger(cfg, output_dir)
-    status = "failed"
+    logger, status = None, "failed"
     try:
+        logger = tracking.make_logger(cfg, output_dir)
         model = _fit(cfg, dataset.for_models(["train", "val"]), output_dir, logger)
         write_scene(model, dataset, output_dir, logger)
         results = {"val": _score_and_write(cfg, model, observed, "val", output_dir / "val", logger)}
         if cfg.test:
             results["test"] = _score_and_write(cfg, model, observed, "test", output_dir / "test", logger)
         status = "success"
+    except BaseException:
+        folders.release(output_dir)  # a failure before anything resumable was written leaves the folder unclaimed
+        raise
     finally:
         tracking.close_logger(logger, status)
     folders.index_run(cfg, output_dir)
@@ -272,9 +286,12 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
 
 
 def _train_dir(cfg: DictConfig) -> Path:
-    """cfg.train_dir if a model was fitted there; else the run the index holds for this signature (a sweep's)."""
+    """cfg.train_dir if a model was fitted there; else the run the index holds for this signature (a sweep's, or one
+    moved with hydra.run.dir), also when the default train_dir holds a run of other settings (a train_dir named on
+    the command line is scored as named, or refused)."""
     train_dir = Path(cfg.train_dir)
-    if not (train_dir / "fitted.json").is_file():
+    elsewhere = OmegaConf.is_interpolation(cfg, "train_dir") and not folders.same_signature(cfg, train_dir)
+    if not (train_dir / "fitted.json").is_file() or elsewhere:
         found = folders.indexed_run(cfg)
         if found is not None:
             log.info("the model of these settings was fitted in %s (run index)", found)

@@ -13,6 +13,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from contactbench import variants
 from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError
 
@@ -157,10 +158,11 @@ def _check_scene(cfg: DictConfig) -> None:
             raise error.__cause__ from None
         raise
     variant = str(cfg.dataset.variant)
-    value = "_".join(part.split("=", 1)[-1] for part in variant.split(","))  # ground=ramp,faces=6 -> ramp_6
-    if not (CONFIG_DIR / "variant" / f"{cfg.dataset.name}_{value}.yaml").is_file():
+    if variants.paper_variant(cfg.dataset.name, variant) is not True:
         log.warning(
-            "%s %s is a custom variant, not one of the paper's Table 1 variants (conf/variant/)",
+            "%s %s is a custom variant, not one of the paper's Table 1 variants (conf/variant/): its results say '%s'"
+            " and stay out of the report's Table 3",
             cfg.dataset.name,
             variant,
+            variants.NOT_PAPER,
         )

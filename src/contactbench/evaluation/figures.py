@@ -6,6 +6,7 @@ import csv
 import json
 import textwrap
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,6 +80,7 @@ IMPORTANCE_THRESHOLD = 0.25
 class Run:
     summary: dict  # metrics.json
     per_trajectory: dict[str, np.ndarray]  # per_trajectory.csv columns
+    path: Path | None = None  # the metrics.json
 
     @property
     def value(self) -> float:
@@ -138,7 +140,7 @@ def load_test_runs(root: Path) -> list[Run]:
         with open(path.parent / "per_trajectory.csv", newline="") as handle:
             rows = list(csv.DictReader(handle))
         columns = {name: np.array([float(row[name]) if row[name] else np.nan for row in rows]) for name in rows[0]}
-        runs.append(Run(summary, columns))
+        runs.append(Run(summary, columns, path))
     return runs
 
 
@@ -308,17 +310,18 @@ def pairwise_collisions_figure(runs: list[Run], path: Path) -> Path | None:
     return save_figure(figure, path)
 
 
-def importance_table(runs: list[Run]) -> dict[str, dict[str, str]]:
+def importance_table(runs: list[Run], method: Callable[[Run], str] | None = None) -> dict[str, dict[str, str]]:
     """Table 3 recomputed: 'Yes' when a method's mean test position error (over seeds too) varies across a
     dimension's variants by more than IMPORTANCE_THRESHOLD of its smallest value and by more than the widest min-max
     range over seeds among those variants (none with one seed), 'No' otherwise, 'N/A' without at least two
-    variants."""
+    variants. A method is a model, or what `method` names a run by (a model at one budget)."""
+    method = method or (lambda run: run.summary["model"])
     table: dict[str, dict[str, str]] = {}
     for dataset, parameter in DIMENSIONS.items():
         chosen = [run for run in runs if run.summary["dataset"] == dataset]
         by_model: dict[str, list[list[Run]]] = {}
-        for cell in seed_cells(chosen, lambda run: (run.summary["model"], run.summary["variant"])):
-            by_model.setdefault(cell[0].summary["model"], []).append(cell)
+        for cell in seed_cells(chosen, lambda run: (method(run), run.summary["variant"])):
+            by_model.setdefault(method(cell[0]), []).append(cell)
         for model, cells in by_model.items():
             spreads = [Spread.of([run.summary["pos_err"] for run in cell]) for cell in cells]
             errors = np.array([spread.mean for spread in spreads])
@@ -371,8 +374,12 @@ def sensitivity_figure(runs: list[Run], dataset: str, variant: str, axis_key: st
     return save_figure(figure, path)
 
 
-def draw_all(root: Path, out_dir: Path) -> tuple[list[Path], dict[str, dict[str, str]]]:
-    every_run = load_test_runs(root)
+def draw_all(
+    root: Path, out_dir: Path, every_run: list[Run] | None = None
+) -> tuple[list[Path], dict[str, dict[str, str]]]:
+    """Every figure the test runs under root allow (or those of every_run: the report's, each score once) and
+    Table 3 over them."""
+    every_run = load_test_runs(root) if every_run is None else every_run
     runs = [run for run in every_run if observed_plainly(run.summary)]
     drawn = [sweep_figure(runs, dataset, out_dir / f"{dataset}.png") for dataset in SWEEPS]
     drawn.append(

@@ -14,12 +14,21 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Glob
 from omegaconf import OmegaConf
 
-from contactbench import atomic
+from contactbench import atomic, variants
 from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError
-from contactbench.evaluation.figures import DIMENSIONS, IMPORTANCE_THRESHOLD, Spread, draw_all, observed_plainly
+from contactbench.evaluation.figures import (
+    DIMENSIONS,
+    IMPORTANCE_THRESHOLD,
+    Run,
+    Spread,
+    draw_all,
+    importance_table,
+    load_test_runs,
+    observed_plainly,
+)
 from contactbench.evaluation.renders import render_report
-from contactbench.folders import OUTCOME
+from contactbench.folders import OUTCOME, SIGNATURE
 
 COLUMNS = [
     ("model", "model", "{}"),
@@ -34,14 +43,19 @@ COLUMNS = [
     ("floor_penetration_true_m", "recorded floor penetration (mm)", "{:.2f}"),
     ("interbody_penetration_m", "inter-body penetration (mm)", "{:.2f}"),
     ("pairwise_collisions", "pairwise collisions", "{:.2f}"),
+    ("budget", "budget", "{}"),
+    ("source_run", "source run", "{}"),  # the command and run folder that wrote the row (collect adds it)
 ]
 MILLIMETRES = {"floor_penetration_m", "floor_penetration_true_m", "interbody_penetration_m"}
-OPTIONAL = {"seed", "floor_penetration_true_m"}  # not in metrics.json written before they were recorded
+# Not in metrics.json written before they were recorded (a budget is then read from the run's folder or config).
+OPTIONAL = {"seed", "floor_penetration_true_m", "budget", "source_run"}
 # In the grid, beside a model that cannot be told from the row's best at these seeds.
 NOT_SEPARABLE = "†"
 
 
 def collect(root: Path) -> list[dict]:
+    """Every metrics.json below root, each with its budget and the command and run folder that wrote it
+    (source_run), and its file (_path)."""
     rows = []
     for path in sorted(Path(root).rglob("metrics.json")):
         row = json.loads(path.read_text())
@@ -50,11 +64,86 @@ def collect(root: Path) -> list[dict]:
             raise ContactbenchError(
                 f"{path}: field {missing[0]!r} missing (not a metrics.json written by evaluate.py/train.py)"
             )
+        task, run_dir = _made_by(row, path)
+        row["budget"] = row.get("budget") or _budget_of(run_dir, Path(root))
+        row["source_run"] = f"{task}.py: {run_dir.relative_to(root).as_posix() if run_dir != Path(root) else '.'}"
+        row["_task"], row["_path"] = task, path
         rows.append(row)
-    return sorted(rows, key=lambda r: (r["dataset"], r["variant"], r["split"], r["model"], r.get("seed") or 0))
+    return sorted(
+        rows,
+        key=lambda r: (r["dataset"], r["variant"], r["split"], r["model"], r["budget"] or "", r.get("seed") or 0),
+    )
+
+
+def _made_by(row: dict, path: Path) -> tuple[str, Path]:
+    """The command that wrote a metrics.json and its run folder: train.py writes <run>/<split>/metrics.json beside
+    the run's signature.json, evaluate.py <run>/metrics.json (older files do not say which)."""
+    task = row.get("task")
+    if task is None:
+        in_split = path.parent.name in ("val", "test")
+        task = "train" if in_split and (path.parent.parent / SIGNATURE).is_file() else "evaluate"
+    return str(task), path.parent.parent if task == "train" else path.parent
+
+
+def _budget_of(run_dir: Path, root: Path) -> str | None:
+    """An older metrics.json's budget: from its folder's name (budget=quick), else its run's .hydra/config.yaml."""
+    found = re.search(r"(?:^|[/,])budget=([\w-]+)", run_dir.relative_to(root).as_posix() if run_dir != root else "")
+    if found:
+        return found.group(1)
+    record = run_dir / ".hydra" / "config.yaml"
+    budget = OmegaConf.select(OmegaConf.load(record), "budget.name") if record.is_file() else None
+    return None if budget is None else str(budget)
+
+
+def _identity(row: dict) -> tuple:
+    """What a row measures: two rows alike in all of it are the same score, written twice."""
+    return (
+        row["model"],
+        row["dataset"],
+        row["variant"],
+        row["split"],
+        row.get("budget"),
+        row.get("seed"),
+        row.get("noise_mm", 0.0),
+        row.get("frame_stride", 1),
+        row.get("context_frames"),
+    )
+
+
+def once_each(rows: list[dict]) -> tuple[list[dict], str]:
+    """Each score once (train.py test=true and a later evaluate.py both score the same fitted model on test): the
+    train.py row where there is one, else the first found; and a line naming what was left out ('' if nothing)."""
+    chosen: dict[tuple, dict] = {}
+    for row in rows:
+        kept = chosen.setdefault(_identity(row), row)
+        if kept["_task"] != "train" and row["_task"] == "train":
+            chosen[_identity(row)] = row
+    kept_rows = [row for row in rows if chosen[_identity(row)] is row]
+    left = [row for row in rows if chosen[_identity(row)] is not row]
+    if not left:
+        return kept_rows, ""
+    named = "; ".join(f"{row['source_run']} ({row['split']})" for row in left[:3])
+    more = f"; and {len(left) - 3} more" if len(left) > 3 else ""
+    return kept_rows, (
+        f"Scored twice: {len(left)} row(s) repeat another's model, data, split, budget and seed and are shown once, "
+        f"keeping the train.py row where there is one. Left out: {named}{more}.\n"
+    )
+
+
+def mixed_budgets(rows: list[dict], where: str) -> str:
+    """One warning line (and the blank line a table after it needs) when rows come from more than one budget."""
+    counts: dict[str, int] = {}
+    for row in rows:
+        counts[row.get("budget") or "unknown"] = counts.get(row.get("budget") or "unknown", 0) + 1
+    if len(counts) < 2:
+        return ""
+    listed = ", ".join(f"{budget} ({n})" for budget, n in sorted(counts.items()))
+    return f"Warning: results of more than one budget in {where}: {listed}; compare within one budget only.\n\n"
 
 
 def _cell(row: dict, key: str, form: str) -> str:
+    if key == "variant":
+        return variants.label(row["dataset"], row["variant"])
     value = row.get(key)
     if value is None:
         return "–"
@@ -93,16 +182,18 @@ def grid_markdown(rows: list[dict]) -> str:
     that differ only by seed are one cell, their mean and [min–max]; in a row with several seeds the lowest mean test
     position error is bold and NOT_SEPARABLE marks the models whose seeds' range overlaps the best's."""
     models = sorted({row["model"] for row in rows})
-    cells: dict[tuple[str, str], dict[str, dict[str, dict]]] = {}
+    cells: dict[tuple[str, str, str], dict[str, dict[str, dict]]] = {}
     for row in rows:
-        splits = cells.setdefault((row["dataset"], row["variant"]), {}).setdefault(row["model"], {})
+        cell = (row["dataset"], row["variant"], row.get("budget") or "–")  # budgets never share a cell
+        splits = cells.setdefault(cell, {}).setdefault(row["model"], {})
         splits.setdefault(row["split"], {})[row.get("seed")] = row  # one row per seed: the last found for it
     lines = [
-        "| dataset | variant | " + " | ".join(models) + " |",
-        "|---|---|" + "---|" * len(models),
+        "| dataset | variant | budget | " + " | ".join(models) + " |",
+        "|---|---|---|" + "---|" * len(models),
     ]
     seeded = False
-    for (dataset, variant), by_model in sorted(cells.items(), key=lambda item: (item[0][0], _variant_key(item[0][1]))):
+    order = lambda item: (item[0][0], _variant_key(item[0][1]), item[0][2])  # noqa: E731
+    for (dataset, variant, budget), by_model in sorted(cells.items(), key=order):
         tests = {
             model: Spread.of([row["pos_err"] for row in splits["test"].values()])
             for model, splits in by_model.items()
@@ -119,13 +210,13 @@ def grid_markdown(rows: list[dict]) -> str:
             elif best is not None and model in tests and tests[model].overlaps(tests[best]):
                 text += f" {NOT_SEPARABLE}"
             entries.append(text)
-        lines.append(f"| {dataset} | {variant} | " + " | ".join(entries) + " |")
+        lines.append(f"| {dataset} | {variants.label(dataset, variant)} | {budget} | " + " | ".join(entries) + " |")
     note = (
         "\nOver several seeds a cell is their mean [min–max] (n seeds). In such a row the lowest mean test position "
         f"error is in bold, and {NOT_SEPARABLE} marks a model whose seeds' test position errors span a range that "
         "overlaps the best's: not separable from the best at these seeds.\n"
     )
-    return "\n".join(lines) + "\n" + (note if seeded else "")
+    return mixed_budgets(rows, "this table") + "\n".join(lines) + "\n" + (note if seeded else "")
 
 
 def sensitivity_markdown(rows: list[dict]) -> str:
@@ -136,14 +227,14 @@ def sensitivity_markdown(rows: list[dict]) -> str:
     tests = [row for row in rows if row["split"] == "test"]
     if all(observed_plainly(row) for row in tests):
         return ""
-    lines = []
+    lines = list(filter(None, [mixed_budgets(tests, "this section")]))
     for dataset, variant in sorted({(row["dataset"], row["variant"]) for row in tests}):
         group = [row for row in tests if (row["dataset"], row["variant"]) == (dataset, variant)]
         settings = sorted({(row.get("noise_mm", 0.0), row.get("frame_stride", 1)) for row in group})
         models = sorted({row["model"] for row in group})
-        against = {row.get("scored_against", "recording") for row in group}
+        against = " / ".join(sorted({row.get("scored_against", "recording") for row in group}))
         lines += [
-            f"### {dataset} {variant} (test; scored against the {' / '.join(sorted(against))})\n",
+            f"### {dataset} {variants.label(dataset, variant)} (test; scored against the {against})\n",
             "| noise (mm) | frame stride | " + " | ".join(models) + " |",
             "|---|---|" + "---|" * len(models),
         ]
@@ -273,22 +364,50 @@ def importance_markdown(table: dict[str, dict[str, str]]) -> str:
     return "\n".join(lines) + "\n\n" + note
 
 
+def table3_markdown(runs: list[Run]) -> str:
+    """Table 3 of the paper's variants only (a custom one is named, not counted); with several budgets, a method's
+    row per budget, and a warning line."""
+    custom = sorted(
+        {(run.summary["dataset"], run.summary["variant"]) for run in runs if not _counts_in_table3(run.summary)}
+    )
+    counted = [run for run in runs if _counts_in_table3(run.summary)]
+    warning = mixed_budgets([run.summary for run in counted], "Table 3")
+    method = (lambda run: f"{run.summary['model']} ({run.summary['budget']})") if warning else None
+    left_out = (
+        "Left out of Table 3: " + ", ".join(f"{dataset} {variants.label(dataset, v)}" for dataset, v in custom) + ".\n"
+        if custom
+        else ""
+    )
+    return warning + importance_markdown(importance_table(counted, method)) + left_out
+
+
+def _counts_in_table3(summary: dict) -> bool:
+    return variants.paper_variant(summary["dataset"], summary["variant"]) is not False
+
+
 def write_report(root: Path, renders: bool = True) -> Path:
     """results.md and results.html in root: the results table, the paper's figures that the runs allow, Table 3, and
     (with renders) final poses of ground truth vs every method and a rollout GIF."""
     root = Path(root)
-    every_row = collect(root)
-    if not every_row:
+    found = collect(root)
+    if not found:
         raise ContactbenchError(f"{root}: no metrics.json below it; run train.py or evaluate.py first")
+    every_row, repeats = once_each(found)
     rows = [row for row in every_row if observed_plainly(row)]
     seeded = len({row.get("seed") for row in rows if row["split"] == "test"}) > 1
     sensitivity = sensitivity_markdown(every_row)
     cells = expected_cells(root)
-    figures, importance = draw_all(root, root / "figures")
+    tests = {row["_path"]: row for row in every_row if row["split"] == "test"}
+    test_runs = [run for run in load_test_runs(root) if run.path in tests]
+    for run in test_runs:
+        run.summary["budget"] = tests[run.path]["budget"]
+    runs = [run for run in test_runs if observed_plainly(run.summary)]
+    figures, _ = draw_all(root, root / "figures", test_runs)
     rendered = render_report(root, root / "renders") if renders else []
     sections = [
-        f"# Results under {root}\n\nEvery metrics.json below this folder ({len(every_row)}); figures from the test "
+        f"# Results under {root}\n\nEvery metrics.json below this folder ({len(found)}); figures from the test "
         "split; tables and figures of the recordings as they are, except the sensitivity section.\n",
+        *([repeats] if repeats else []),
         *(
             ["## The jobs of the last sweep launched here (its multirun.yaml)\n", expected_markdown(cells)]
             if cells
@@ -297,10 +416,11 @@ def write_report(root: Path, renders: bool = True) -> Path:
         "## Test position error (widths) / rotation error (rad), val position error beside\n",
         grid_markdown(rows),
         "## Figures\n",
+        *filter(None, [mixed_budgets([run.summary for run in runs], "the figures")]),
         *[f"![{path.stem}](figures/{path.name})\n" for path in figures],
         "## Table 3, recomputed\n",
         importance_sentence(seeded),
-        importance_markdown(importance),
+        table3_markdown(runs),
         "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
         *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
         *(

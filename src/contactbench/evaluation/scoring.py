@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from contactbench import atomic
+from contactbench import atomic, variants
 from contactbench.ground import Ground
 from contactbench.metrics import MetricsResult, compute_metrics
 from contactbench.models.base import ContactModel
@@ -115,7 +115,7 @@ def write_score(score: Score, out_dir: Path) -> dict:
         "%s on %s/%s %s (%d trajectories): pos_err %.4f  rot_err %.4f rad  floor penetration %.2e m (recorded %.2e m)",
         score.header["model"],
         score.header["dataset"],
-        score.header["variant"],
+        variants.label(score.header["dataset"], score.header["variant"]),
         score.header["split"],
         score.header["n_trajectories"],
         score.metrics.summary["pos_err"],
