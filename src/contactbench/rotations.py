@@ -6,7 +6,10 @@ import numpy as np
 
 
 def normalize(q: np.ndarray) -> np.ndarray:
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    """Unit quaternions. A zero quaternion, which is how zero-filled frames past a toss's end arrive (no orientation
+    recorded), becomes NaN without a warning: those frames are masked out wherever they are read."""
+    with np.errstate(invalid="ignore"):  # 0/0 only: a non-zero quaternion never divides by a zero norm
+        return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def conjugate(q: np.ndarray) -> np.ndarray:

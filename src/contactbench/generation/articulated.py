@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet
 
 from contactbench import rotations
 from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, engine_states, forget_contacts, table_2a_world
@@ -18,6 +17,7 @@ from contactbench.generation.scenes import BulletSettings, SceneSpec
 from contactbench.generation.solids import WIDTH, convex_mesh
 from contactbench.kinematics import hinge_child, hinge_coordinates, world_vertices
 from contactbench.meshes import Mesh
+from contactbench.sim.quiet_pybullet import pybullet
 
 THICKNESS = 0.04  # m, each bar's square cross-section
 GAP = 0.04  # m between the bars' ends, the axle in its middle

@@ -9,13 +9,13 @@ from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
-import pybullet
 
 from contactbench import rotations
 from contactbench.generation.effects import NONE, ConcealedEffects
 from contactbench.generation.scenes import BulletSettings, SceneSpec
 from contactbench.meshes import Mesh, obj_text
 from contactbench.recordings import Static
+from contactbench.sim.quiet_pybullet import pybullet
 
 CONTACT_KEYS = ("contact_normal_force", "contact_friction_force", "contact_normal_torque", "contact_friction_torque")
 # Bodies wait here between tosses: far above the floor and 10 m from each other, beyond any contact threshold.

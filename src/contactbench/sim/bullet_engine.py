@@ -26,7 +26,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
-import pybullet
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError, NotApplicable
@@ -46,6 +45,7 @@ from contactbench.sim.articulation import articulated
 from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
 from contactbench.sim.bullet_urdf import scene_files
 from contactbench.sim.engines import Dimension, Engine
+from contactbench.sim.quiet_pybullet import pybullet
 from contactbench.sim.stepped import SteppedRollouts, World
 
 # What a recordings hinge may say (RECORDINGS.md, version 2), all of which the world builds

@@ -56,7 +56,7 @@ class IdentifiedModule(pl.LightningModule):
     model_name: str  # what the fitted contact model is called in scores
 
     def configure_optimizers(self):
-        return None
+        return []  # no optimiser, said as Lightning reads it: None would have it warn about a fit without one
 
     def training_step(self, batch, batch_index):
         return None  # the callback does the work of a step
