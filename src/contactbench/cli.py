@@ -165,7 +165,7 @@ def check_command_line(task: str, argv: list[str] | None = None) -> None:
         group, _, value = (error.missing_cfg_file or "").rpartition("/")
         _refuse(_no_option(group, value, error.options) if group and error.options else _joined(error))
     except (HydraException, OmegaConfBaseException) as error:
-        _refuse(_no_key(error, overrides) or _joined(error))
+        _refuse(_no_group(task, error, overrides) or _no_key(error, overrides) or _joined(error))
 
 
 # Which group a lone option names (`sysid` is model=sysid; contactnets_cube is a dataset before it is a variant).
@@ -213,6 +213,22 @@ def _no_option(group: str, value: str, options) -> str:
     close = difflib.get_close_matches(value, options, n=1)
     hint = f"did you mean {close[0]}? " if close else ""
     return f"{group}={value}: {group} has no option {value} ({hint}expected one of {', '.join(options)})"
+
+
+def _no_group(task: str, error: Exception, overrides) -> str | None:
+    """A config group this entry point does not use (diagnose.py model=sysid), which Hydra would have appended with
+    +group=...: said so, with what the entry point takes instead."""
+    found = re.match(r"Could not override '([^']+)'\. No match in the defaults list", str(error))
+    if not found:
+        return None
+    group = found.group(1)
+    line = next((o.input_line for o in overrides if o.key_or_group == group), group)
+    if task == "diagnose" and group == "dataset":
+        return (
+            f"{line}: diagnose.py reads a recordings folder, not a dataset (write recordings=<folder>, e.g. "
+            "recordings=assets/contactnets_cube)"
+        )
+    return f"{line}: {task}.py takes no {group} (python {task}.py --help lists what it takes)"
 
 
 def _no_key(error: Exception, overrides) -> str | None:
