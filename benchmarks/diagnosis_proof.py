@@ -22,6 +22,7 @@ null twin. For named cases it also reports the fraction of the excess held-out e
 
     python benchmarks/diagnosis_proof.py --set independent_1   # one set (16-23 cases, 15-25 min on 2 cores)
     python benchmarks/diagnosis_proof.py --set held_out_15 --only floor_tilt
+    python benchmarks/diagnosis_proof.py --set independent_5 --engines mujoco drake   # as if PyBullet did not exist
 """
 
 from __future__ import annotations
@@ -172,9 +173,10 @@ def judge(case: dict, document: dict) -> dict:
     return {"named": named, "candidates": candidates, "verdict": verdict, "located": located, "outcome": outcome}
 
 
-def diagnose(path: Path, out_dir: Path, budget: str) -> dict:
+def diagnose(path: Path, out_dir: Path, budget: str, engines: list[str]) -> dict:
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("diagnose", overrides=[f"recordings={path}", f"budget={budget}"])
+        overrides = [f"recordings={path}", f"budget={budget}", f"engines=[{','.join(engines)}]"]
+        cfg = compose("diagnose", overrides=overrides)
     runs.diagnose(cfg, out_dir)
     return json.loads((out_dir / "diagnosis.json").read_text())
 
@@ -184,10 +186,18 @@ def main() -> None:
     parser.add_argument("--set", choices=SETS, required=True, help="the blind set (benchmarks/proof_sets/<set>.yaml)")
     parser.add_argument("--only", nargs="*", default=None, help="the cases with any of these labels (none: nulls)")
     parser.add_argument("--budget", default="quick")
+    parser.add_argument(
+        "--engines",
+        nargs="+",
+        default=["mujoco", "bullet", "drake"],
+        help="the contact laws the diagnosis may choose its base from; leave out bullet to diagnose as if the "
+        "generator's engine did not exist (the proof's second report)",
+    )
     parser.add_argument("--data", type=Path, default=ROOT / "data" / "proof")
     parser.add_argument("--out", type=Path, default=None, help="default: outputs/proof/<set>")
     args = parser.parse_args()
-    out = args.out or ROOT / "outputs" / "proof" / args.set
+    excluded = "" if "bullet" in args.engines else "_without_bullet"
+    out = args.out or ROOT / "outputs" / "proof" / (args.set + excluded)
     started = time.perf_counter()
     rows = []
     for listed in read_set(args.set):
@@ -195,7 +205,7 @@ def main() -> None:
             continue
         path, measured = blind_copy(listed, args.data)
         case_started = time.perf_counter()
-        document = diagnose(path, out / path.name, args.budget)
+        document = diagnose(path, out / path.name, args.budget, args.engines)
         held = document["heldout"]
         named = bool(document["effects"])  # on val, confirmed or not
         row = {
@@ -210,6 +220,8 @@ def main() -> None:
             "heldout_improvement": held["improvement"] if named else None,
             "heldout_ci95": held["ci95"] if named else None,
             "predictor": _predictor_gain(document),
+            "contact_law": document["contact_law"]["best"],
+            "naming_base": document["naming_base"],
             "seconds": round(time.perf_counter() - case_started, 1),
         }
         rows.append(row)

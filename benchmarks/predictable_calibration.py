@@ -29,7 +29,7 @@ from diagnosis_proof import SHAPES  # beside this script: the proof's shapes, at
 
 from contactbench.diagnosis import predictable
 from contactbench.diagnosis.library import Hypothesis
-from contactbench.diagnosis.pipeline import Budget, Diagnosis
+from contactbench.diagnosis.state import Budget, Diagnosis
 from contactbench.generation.generator import generate_dataset
 from contactbench.recordings import read_recordings
 

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from contactbench.diagnosis import contact_law
-from contactbench.diagnosis.pipeline import Budget, Diagnosis
+from contactbench.diagnosis.bases import engine_bases
+from contactbench.diagnosis.library import Hypothesis, library
+from contactbench.diagnosis.state import Budget, Diagnosis
 from contactbench.errors import ContactbenchError
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.scenes import BulletSettings, SceneSpec
@@ -27,21 +29,29 @@ TINY = Budget(
 
 
 def test_an_engine_base_searches_its_contact_law_only_in_the_option_it_stands_for():
-    rigid, compliant = contact_law.engine_bases("bullet", n_bodies=2, n_joints=0)
+    rigid, compliant = engine_bases("bullet", n_bodies=2, n_joints=0)
     assert rigid.label == "bullet (rigid contact)" and compliant.label == "bullet (compliant contact)"
     searched = {d.name for d in rigid.searched}
     # rolling and spinning friction are library effects; stiffness and damping act only in the compliant option
     assert searched == {"object_friction_0", "object_friction_1", "restitution_0", "restitution_1"}
     assert {d.name for d in compliant.searched} == searched | {"contact_stiffness", "contact_damping_ratio"}
-    lower, upper = compliant.bounds()
-    parameters = compliant.contact_parameters(upper)
+    hypothesis = Hypothesis(2, base=compliant)
+    assert hypothesis.engine == "bullet" and hypothesis.keys() == [d.name for d in compliant.searched]
+    lower, upper = hypothesis.bounds()
+    parameters = hypothesis.contact_parameters(upper)
     assert isinstance(parameters, BulletParameters)
     assert parameters.contact_stiffness == pytest.approx(1e8)  # a log-scaled dimension is searched as its logarithm
     assert parameters.spinning_friction == parameters.rolling_friction == pytest.approx(1e-6)
-    assert rigid.contact_parameters(rigid.start()).contact_stiffness is None
-    outside = rigid.contact_parameters(rigid.bounds()[1] + 5.0)  # a step past the box is clipped back into it
-    assert max(outside.object_friction) == 1.0 and max(outside.restitution) == 1.0
-    assert np.all(lower <= compliant.start()) and np.all(compliant.start() <= upper)
+    assert Hypothesis(2, base=rigid).contact_parameters(Hypothesis(2, base=rigid).start()).contact_stiffness is None
+    assert np.all(lower <= hypothesis.start()) and np.all(hypothesis.start() <= upper)
+    # a library effect on an engine base becomes the engine's own: PyBullet's rolling friction, its floor's tilt
+    effects = library(0.1)
+    tilted = hypothesis.with_effect(effects["rolling_friction"]).with_effect(effects["floor_tilt"])
+    values = tilted.start()
+    values[-3:] = (0.01, 0.05, -0.02)
+    parameters = tilted.contact_parameters(values)
+    assert parameters.rolling_friction == pytest.approx(0.01) and parameters.effects.floor_tilt == (0.05, -0.02)
+    assert parameters.object_friction == hypothesis.contact_parameters(values[:-3]).object_friction
 
 
 @pytest.mark.parametrize("engines", [("bullet",), ("mujoco", "ode"), ("mujoco", "mujoco")])
@@ -60,7 +70,7 @@ def test_pybullet_made_tosses_are_best_fitted_by_pybullet_and_mujoco_misses_at_i
     )
     steps = Diagnosis(read_recordings(path).for_models(["train", "val", "test"]), TINY)
     base, values = steps.fit_base()
-    section, best = contact_law.compare(steps, base, values, ("mujoco", "bullet"))
+    section, (best, *_), seconds = contact_law.compare(steps, base, values, ("mujoco", "bullet"))
     assert best.engine == "bullet" and section["best_engine"] == "bullet"  # rigid or compliant, at this budget
     mujoco = next(law for law in section["laws"] if law["law"] == "mujoco")
     against = mujoco["against_best"]
@@ -69,7 +79,7 @@ def test_pybullet_made_tosses_are_best_fitted_by_pybullet_and_mujoco_misses_at_i
     assert max(phases, key=lambda p: phases[p]["share"]) == "impact"
     assert sum(share["share"] for share in phases.values()) == pytest.approx(against["val"]["improvement"])
     assert f"{best.label} closes" in section["finding"] and "confirmed on test" in section["finding"]
-    assert set(steps.timings) >= {"contact_law_s", contact_law.fit_seconds_key(best.label)}
+    assert set(seconds) >= {"contact_law_s", contact_law.fit_seconds_key(best.label)}
 
 
 def test_an_engine_that_refuses_the_scene_is_skipped_in_one_line(tmp_path):
@@ -85,7 +95,7 @@ def test_an_engine_that_refuses_the_scene_is_skipped_in_one_line(tmp_path):
     small = Budget(fit_trajectories=3, val_trajectories=2, base_evaluations=4, batch=4, lsq_iterations=1, bootstrap=50)
     steps = Diagnosis(read_recordings(tmp_path / "ring").for_models(["train", "val", "test"]), small)
     base, values = steps.fit_base()
-    section, best = contact_law.compare(steps, base, values, ("mujoco", "drake"))
+    section, (best, *_), _ = contact_law.compare(steps, base, values, ("mujoco", "drake"))
     assert best.engine == "mujoco" and [law["law"] for law in section["laws"]] == ["mujoco"]
     (skipped,) = section["skipped"]
     assert skipped["engine"] == "drake" and "non-convex" in skipped["reason"] and "\n" not in skipped["reason"]

@@ -113,8 +113,8 @@ def test_bad_recordings_path_is_one_clear_line(tmp_path):
 
 
 def test_only_a_smoke_budget_is_called_inconclusive():
-    from contactbench.diagnosis.pipeline import Budget
     from contactbench.diagnosis.report import budget_sentence, summary_sentence
+    from contactbench.diagnosis.state import Budget
 
     held = {
         "base": {"pos_err": 0.3},
@@ -197,7 +197,7 @@ def test_wind_that_gains_nothing_on_air_drag_does_not_pass():
     from contactbench.diagnosis import naming
     from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.library import library
-    from contactbench.diagnosis.pipeline import Budget
+    from contactbench.diagnosis.state import Budget
 
     rng = np.random.default_rng(0)
     drag = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses
@@ -223,7 +223,7 @@ def test_a_candidate_is_judged_against_the_model_without_it_refitted_from_its_va
     from contactbench.diagnosis import naming
     from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.library import Hypothesis, library
-    from contactbench.diagnosis.pipeline import Budget
+    from contactbench.diagnosis.state import Budget
 
     rng = np.random.default_rng(0)
     base_val = rng.uniform(1.0, 2.0, size=60)  # per-trajectory val losses of the model of the round
@@ -374,7 +374,7 @@ def test_each_of_two_named_effects_must_improve_the_held_out_rollouts_given_the_
     from contactbench.diagnosis import proof
     from contactbench.diagnosis.decision import Decision
     from contactbench.diagnosis.library import Hypothesis, library
-    from contactbench.diagnosis.pipeline import Budget
+    from contactbench.diagnosis.state import Budget
 
     rng = np.random.default_rng(0)
     errors = rng.uniform(0.2, 0.4, size=110)  # per test toss, the pair's full-rollout position error
@@ -401,9 +401,9 @@ def test_each_of_two_named_effects_must_improve_the_held_out_rollouts_given_the_
 
 def test_the_candidates_figure_takes_an_interval_that_misses_its_estimate_by_rounding(tmp_path):
     """One held-out toss: its bootstrap interval is a point, which can lie 1e-17 beside the estimate."""
-    from contactbench.diagnosis.report import _candidates
+    from contactbench.diagnosis.figures import candidates
 
     candidate = {"name": "wind", "round": 1, "val_improvement": -0.1, "passes": False}
     estimate = -0.1 + 1e-17
     scored = [{**candidate, "closes_of_base_loss": estimate, "closes_ci95": [-0.1, -0.1]}]
-    assert _candidates(scored, 0.05, tmp_path / "candidates.png").is_file()
+    assert candidates(scored, 0.05, tmp_path / "candidates.png").is_file()

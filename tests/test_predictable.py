@@ -14,8 +14,8 @@ from test_diagnose import CUBE
 from contactbench.diagnosis import open_world, predictable
 from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.phases import FREE, PHASES, REST, ROLLING, SLIDING
-from contactbench.diagnosis.pipeline import Budget, Diagnosis
 from contactbench.diagnosis.segments import SegmentSimulator
+from contactbench.diagnosis.state import Budget, Diagnosis
 from contactbench.generation.generator import generate_dataset
 from contactbench.recordings import read_recordings
 

@@ -342,6 +342,7 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
         Decision(margin=float(cfg.margin)),
         seed=int(cfg.seed),
         context_frames=int(cfg.context_frames),
+        engines=tuple(cfg.engines),
     )
     document["recordings"] = str(path)
     document["budget_name"] = str(cfg.budget.name)

@@ -17,30 +17,27 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from itertools import product
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from contactbench.diagnosis.bases import engine_bases
 from contactbench.diagnosis.decision import bootstrap_ratio
 from contactbench.diagnosis.fitting import ResidualFit
+from contactbench.diagnosis.library import Hypothesis
 from contactbench.diagnosis.phases import PHASES
 from contactbench.diagnosis.segments import Segments, SegmentSimulator, cut_segments
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.evaluation.scoring import score_model
 from contactbench.models.analytical import EngineContactModel
-from contactbench.models.sysid.search_space import EngineSearchSpace
-from contactbench.sim.engines import ENGINE_CLASSES, Dimension, engine
+from contactbench.sim.engines import ENGINE_CLASSES, engine
 
 if TYPE_CHECKING:
-    from contactbench.diagnosis.library import Hypothesis
-    from contactbench.diagnosis.pipeline import Diagnosis
+    from contactbench.diagnosis.state import Diagnosis
 
 log = logging.getLogger(__name__)
 # The contact laws compared, by default every engine the project has; MuJoCo always, as the library is modelled there
 ENGINES = tuple(ENGINE_CLASSES)
-# Engine dimensions that are effects of the library (diagnosis.library), kept out of every engine's base
-LIBRARY_DIMENSIONS = frozenset(("spinning_friction", "rolling_friction"))
 # What each engine is, for the report
 LAWS = {
     "mujoco": "MuJoCo's soft convex contact (solref/solimp impedance, pyramidal friction cone)",
@@ -49,89 +46,13 @@ LAWS = {
 }
 
 
-@dataclass(frozen=True)
-class EngineBase:
-    """An engine in one contact option as fit parameters, with library.Hypothesis' interface (bounds, start,
-    contact_parameters, reported): its continuous dimensions in the fit's internal units (the logarithm of a log-scaled
-    one), the discrete ones fixed to the option, and those that act only in another option at their start value."""
-
-    engine: str
-    space: EngineSearchSpace
-    option: tuple[tuple[str, str], ...] = ()  # (discrete dimension, choice)
-    names: tuple[str, ...] = ()  # no library effects: an engine base alone
-    effects: tuple = ()
-
-    @property
-    def pinned(self) -> dict[str, float]:
-        """Dimensions that are library effects, not the contact law (PyBullet's rolling and spinning friction), held
-        at the least the engine allows: no engine's base has them, so a dataset's rolling friction cannot make
-        PyBullet's law look better, and the library can still name it."""
-        return {d.name: d.low for d in self.space.dimensions if d.name in LIBRARY_DIMENSIONS}
-
-    @property
-    def label(self) -> str:
-        return self.engine + "".join(f" ({choice} contact)" for _, choice in self.option)
-
-    @property
-    def searched(self) -> tuple[Dimension, ...]:
-        chosen = dict(self.option)
-        return tuple(
-            d
-            for d in self.space.dimensions
-            if not d.choices and d.name not in LIBRARY_DIMENSIONS and (d.when is None or chosen[d.when[0]] == d.when[1])
-        )
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        low = [np.log(d.low) if d.log else d.low for d in self.searched]
-        high = [np.log(d.high) if d.log else d.high for d in self.searched]
-        return np.array(low, dtype=float), np.array(high, dtype=float)
-
-    def start(self) -> np.ndarray:
-        """Each dimension's own start (Dimension.init), else the middle of its range (on a log scale, the geometric)."""
-        lower, upper = self.bounds()
-        starts = [
-            (np.log(d.init) if d.log else d.init) if d.init is not None else 0.5 * (lo + hi)
-            for d, lo, hi in zip(self.searched, lower, upper)
-        ]
-        return np.array(starts, dtype=float)
-
-    def numbers(self, values: np.ndarray) -> dict[str, float]:
-        """Every dimension's value (reported units) for internal values of the searched ones."""
-        chosen = dict(self.option)
-        numbers = {d.name: float(d.choices.index(chosen[d.name])) for d in self.space.dimensions if d.choices}
-        numbers |= {d.name: float(d.init) for d in self.space.dimensions if not d.choices and d.when is not None}
-        numbers |= self.pinned
-        lower, upper = self.bounds()
-        for d, value in zip(self.searched, np.clip(np.asarray(values, dtype=float), lower, upper)):
-            numbers[d.name] = float(np.exp(value)) if d.log else float(value)
-        return numbers
-
-    def contact_parameters(self, values: np.ndarray) -> Any:
-        numbers = self.numbers(values)
-        return self.space.from_vector([numbers[name] for name in self.space.names])
-
-    def reported(self, values: np.ndarray) -> dict[str, dict[str, float | str]]:
-        numbers = self.numbers(values)
-        return {"base": {**{d.name: numbers[d.name] for d in self.searched}, **dict(self.option)}}
-
-
-def engine_bases(name: str, n_bodies: int, n_joints: int) -> list[EngineBase]:
-    """One EngineBase per contact option of the engine (every combination of its discrete dimensions)."""
-    space = EngineSearchSpace(engine(name), n_bodies, n_joints)
-    discrete = [d for d in space.dimensions if d.choices]
-    return [
-        EngineBase(name, space, tuple(zip((d.name for d in discrete), choice)))
-        for choice in product(*(d.choices for d in discrete))
-    ]
-
-
 @dataclass
 class Candidate:
     """One fitted contact law and its losses: per val (and test) trajectory, in total and by phase."""
 
     label: str
     engine: str
-    hypothesis: Any  # EngineBase, or the diagnosis' MuJoCo base Hypothesis
+    hypothesis: Hypothesis  # the diagnosis' MuJoCo base, or an engine's (Hypothesis.base)
     values: np.ndarray
     train_loss: float
     seconds: float
@@ -140,7 +61,7 @@ class Candidate:
     full: dict | None = None  # test full rollouts: per-trajectory pos_err, rot_err_rad
 
 
-def phase_losses(fit: ResidualFit, hypothesis: Any, values: np.ndarray, n_trajectories: int) -> np.ndarray:
+def phase_losses(fit: ResidualFit, hypothesis: Hypothesis, values: np.ndarray, n_trajectories: int) -> np.ndarray:
     """[N, phases]: each trajectory's mean robust loss per (segment, body), split by the phase the segment spends the
     body in; the phases sum to the trajectory's loss (SegmentSimulator.trajectory_losses, with one body)."""
     segments = fit.simulator.segments
@@ -203,13 +124,14 @@ def fit_engines(
             continue
         fits = _fits(steps, name, [law_segments, steps.val_fit.simulator.segments, test_fit.simulator.segments])
         try:
-            for base in engine_bases(name, dataset.n_bodies, len(dataset.joints)):
+            for option in engine_bases(name, dataset.n_bodies, len(dataset.joints)):
                 started = time.perf_counter()
+                base = Hypothesis(dataset.n_bodies, base=option)
                 values = fits[0].global_search(base, budget.law_evaluations, budget.batch, steps.seed)
                 values, _ = fits[0].least_squares(base, values, budget.lsq_iterations)
                 candidates.append(
                     Candidate(
-                        base.label,
+                        option.label,
                         name,
                         base,
                         values,
@@ -221,7 +143,7 @@ def fit_engines(
                 )
                 log.info(
                     "contact law: %s fitted in %.0f s, val loss %.5f",
-                    base.label,
+                    option.label,
                     candidates[-1].seconds,
                     candidates[-1].val.sum(axis=1).mean(),
                 )
@@ -257,11 +179,13 @@ def _by_phase(other: np.ndarray, best: np.ndarray, steps: Diagnosis) -> dict:
 
 def compare(
     steps: Diagnosis, mujoco: Hypothesis, mujoco_values: np.ndarray, engines: tuple[str, ...] = ENGINES
-) -> tuple[dict, Candidate]:
-    """The contact-law section of the document, and the best law (lowest val loss)."""
+) -> tuple[dict, list[Candidate], dict[str, float]]:
+    """The contact-law section of the document, the fitted laws from the best on val (lowest loss) down, and how long
+    each fit took (s)."""
     started = time.perf_counter()
     candidates, skipped = fit_engines(steps, mujoco, mujoco_values, engines)
-    best = min(candidates, key=lambda c: c.val.sum(axis=1).mean())
+    ranked = sorted(candidates, key=lambda c: c.val.sum(axis=1).mean())
+    best = ranked[0]
     draws, confidence = steps.budget.bootstrap, steps.decision.confidence
     best.full = full_rollouts(steps, best)
     laws = []
@@ -316,10 +240,9 @@ def compare(
         "finding": finding(laws),
         "budget": {"law_trajectories": steps.budget.law_trajectories, "law_evaluations": steps.budget.law_evaluations},
     }
-    # Timings go with the diagnosis' own (the document is the same bytes for the same data and seed).
-    steps.timings |= {fit_seconds_key(c.label): c.seconds for c in candidates if c.engine != "mujoco"}
-    steps.timings["contact_law_s"] = time.perf_counter() - started
-    return document, best
+    # Timings apart from the document, which is the same bytes for the same data and seed
+    seconds = {fit_seconds_key(c.label): c.seconds for c in candidates if c.engine != "mujoco"}
+    return document, ranked, seconds | {"contact_law_s": time.perf_counter() - started}
 
 
 def fit_seconds_key(label: str) -> str:

@@ -64,12 +64,14 @@ def lines(section: dict | None, naming_base: str, seconds: dict) -> list[str]:
         "(95% intervals above zero). Rolling and spinning friction are library effects, in no engine's base.",
         "",
     ]
-    if naming_base != section["best_engine"]:
+    if naming_base != section["best"]:
         out += [
-            f"The effects below are named on {naming_base}: the library is modelled only there so far, so what "
-            f"{naming_base} misses against {section['best']} is still in the base the names are judged on.",
+            f"The effects below are named on {naming_base}, the best law whose engine models the library here "
+            f"({section['best']} models none of it yet).",
             "",
         ]
+    if section.get("not_modelled_on_naming_base"):
+        out += [f"Not modelled on {naming_base}: {', '.join(section['not_modelled_on_naming_base'])}.", ""]
     return out
 
 

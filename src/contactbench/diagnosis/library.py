@@ -1,16 +1,23 @@
-"""The candidate effects and the base parameters as one vector of fit parameters, mapped to MuJoCo's model."""
+"""The candidate effects and the base parameters as one vector of fit parameters, mapped to the base engine's
+parameters (the diagnosis' own MuJoCo base, or another engine's contact law: diagnosis.bases)."""
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from contactbench.diagnosis.free_flight import INCONCLUSIVE, MARGIN, MEASURED, RULED_OUT
 from contactbench.errors import ContactbenchError
 from contactbench.generation.effects import EFFECT_NAMES
-from contactbench.sim.mujoco_scene import MUJOCO_DEFAULT_SOLIMP, ContactParameters, SceneEffects
+from contactbench.sim.effects import SceneEffects
+from contactbench.sim.engines import engine
+from contactbench.sim.mujoco_scene import MUJOCO_DEFAULT_SOLIMP, ContactParameters
+
+if TYPE_CHECKING:
+    from contactbench.diagnosis.bases import EngineBase
 
 
 @dataclass(frozen=True)
@@ -215,14 +222,24 @@ def base_parameters(n_bodies: int) -> tuple[Parameter, ...]:
 
 @dataclass(frozen=True)
 class Hypothesis:
-    """The base simulator plus some named effects: its fit parameters and how they become MuJoCo's."""
+    """A base simulator plus some named effects: its fit parameters and how they become the engine's. The base is the
+    diagnosis' own MuJoCo (base_parameters) unless `base` names another engine's contact law (diagnosis.bases)."""
 
     n_bodies: int
     effects: tuple[Effect, ...] = ()
+    base: EngineBase | None = None
+
+    @property
+    def engine(self) -> str:
+        return "mujoco" if self.base is None else self.base.engine
+
+    @property
+    def base_fit_parameters(self) -> tuple[Parameter, ...]:
+        return base_parameters(self.n_bodies) if self.base is None else self.base.parameters()
 
     @property
     def parameters(self) -> tuple[Parameter, ...]:
-        return base_parameters(self.n_bodies) + tuple(p for effect in self.effects for p in effect.parameters)
+        return self.base_fit_parameters + tuple(p for effect in self.effects for p in effect.parameters)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -231,6 +248,10 @@ class Hypothesis:
     def with_effect(self, effect: Effect) -> Hypothesis:
         return dataclasses.replace(self, effects=self.effects + (effect,))
 
+    def with_effects(self, effects: tuple[Effect, ...]) -> Hypothesis:
+        """The same base with exactly these effects."""
+        return dataclasses.replace(self, effects=tuple(effects))
+
     def start(self, previous: Hypothesis | None = None, values: np.ndarray | None = None) -> np.ndarray:
         """Internal start vector: a previous hypothesis' fitted values where parameters are shared, else defaults."""
         known = dict(zip(previous.keys(), values)) if previous is not None else {}
@@ -238,8 +259,7 @@ class Hypothesis:
 
     def keys(self) -> list[str]:
         """Unique keys: an effect's parameter is keyed by effect and name (wind and air_drag both have a density)."""
-        n_base = len(base_parameters(self.n_bodies))
-        keys = [p.name for p in self.parameters[:n_base]]
+        keys = [p.name for p in self.base_fit_parameters]
         return keys + [f"{effect.name}.{p.name}" for effect in self.effects for p in effect.parameters]
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -254,33 +274,16 @@ class Hypothesis:
             out.setdefault(group or "base", {})[name] = value
         return out
 
-    def contact_parameters(self, values: np.ndarray) -> ContactParameters:
-        """MuJoCo's parameters for internal values (within bounds)."""
+    def contact_parameters(self, values: np.ndarray) -> Any:
+        """The engine's parameters for internal values (within bounds)."""
         reported = self.reported(np.asarray(values, dtype=float))
         base = reported.pop("base")
-        scene: dict[str, object] = {}
-        extra: dict[str, float] = {}
-        for name, values_of in reported.items():
-            if name in ("air_drag", "wind"):
-                scene["fluid_density"] = scene.get("fluid_density", 0.0) + values_of["fluid_density"]
-                if name == "wind":
-                    scene["wind"] = (values_of["wind_x"], values_of["wind_y"], 0.0)
-            elif name in ("rolling_friction", "torsional_friction"):
-                extra[name] = values_of[name]
-            elif name == "anisotropic_friction":
-                scene["friction_anisotropy"] = values_of["friction_anisotropy"]
-            elif name == "com_offset":
-                scene["com_offset"] = tuple(values_of[f"com_offset_{a}"] for a in "xyz")
-            elif name == "inertia_mismatch":
-                scene["inertia_scale"] = tuple(values_of[f"inertia_scale_{a}"] for a in "xyz")
-            elif name == "floor_offset":
-                scene["floor_offset"] = values_of["floor_offset"]
-            elif name == "floor_tilt":
-                scene["floor_tilt"] = (values_of["floor_tilt_x"], values_of["floor_tilt_y"])
-            elif name == "gravity_scale":
-                scene["gravity_scale"] = values_of["gravity_scale"]
-            else:
-                raise ContactbenchError(f"no MuJoCo model for effect {name!r}")
+        scene, extra = effect_settings(reported)
+        if self.base is not None:
+            parameters = self.base.engine_parameters(base)
+            return (
+                engine(self.engine).with_effects(parameters, SceneEffects(**scene), **extra) if reported else parameters
+            )
         return ContactParameters(
             object_friction=tuple(base[f"object_friction_{k}"] for k in range(self.n_bodies)),
             floor_friction=0.0,
@@ -290,3 +293,32 @@ class Hypothesis:
             effects=SceneEffects(**scene),
             **extra,
         )
+
+
+def effect_settings(reported: dict[str, dict[str, float]]) -> tuple[dict[str, object], dict[str, float]]:
+    """The named effects' fitted values (reported units) as SceneEffects fields and the two friction extras (rolling
+    and torsional friction), the same for every engine that models them."""
+    scene: dict[str, object] = {}
+    extra: dict[str, float] = {}
+    for name, values_of in reported.items():
+        if name in ("air_drag", "wind"):
+            scene["fluid_density"] = scene.get("fluid_density", 0.0) + values_of["fluid_density"]
+            if name == "wind":
+                scene["wind"] = (values_of["wind_x"], values_of["wind_y"], 0.0)
+        elif name in ("rolling_friction", "torsional_friction"):
+            extra[name] = values_of[name]
+        elif name == "anisotropic_friction":
+            scene["friction_anisotropy"] = values_of["friction_anisotropy"]
+        elif name == "com_offset":
+            scene["com_offset"] = tuple(values_of[f"com_offset_{a}"] for a in "xyz")
+        elif name == "inertia_mismatch":
+            scene["inertia_scale"] = tuple(values_of[f"inertia_scale_{a}"] for a in "xyz")
+        elif name == "floor_offset":
+            scene["floor_offset"] = values_of["floor_offset"]
+        elif name == "floor_tilt":
+            scene["floor_tilt"] = (values_of["floor_tilt_x"], values_of["floor_tilt_y"])
+        elif name == "gravity_scale":
+            scene["gravity_scale"] = values_of["gravity_scale"]
+        else:
+            raise ContactbenchError(f"no model for effect {name!r}")
+    return scene, extra

@@ -11,7 +11,7 @@ from contactbench.diagnosis.phases import FREE, PHASES, label_phases
 from contactbench.diagnosis.segments import COMPONENTS, residual_parts
 
 if TYPE_CHECKING:
-    from contactbench.diagnosis.pipeline import Diagnosis
+    from contactbench.diagnosis.state import Diagnosis
 
 
 def locate(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray) -> dict:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-import time
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -12,7 +12,7 @@ from contactbench.diagnosis.decision import bootstrap_ratio
 from contactbench.diagnosis.library import Effect, Hypothesis
 
 if TYPE_CHECKING:
-    from contactbench.diagnosis.pipeline import Diagnosis
+    from contactbench.diagnosis.state import Diagnosis
 
 log = logging.getLogger(__name__)
 
@@ -24,11 +24,22 @@ EXACT_FLIGHT_LOSS = 1e-12
 MIN_FLYING_TRAJECTORIES = 10  # val tosses with free-flight segments that free-flight evidence needs
 
 
-def name_effects(
-    steps: Diagnosis, base: Hypothesis, base_values: np.ndarray
-) -> tuple[Hypothesis, np.ndarray, list[dict]]:
-    """Greedy forward selection over the library; returns the chosen hypothesis and every candidate's record."""
-    started = time.perf_counter()
+@dataclass
+class Naming:
+    """What naming found: the model named on val, every candidate's record, the effects the first round could not
+    tell apart (confounded: none is named), and each of several named effects judged given the others."""
+
+    hypothesis: Hypothesis
+    values: np.ndarray
+    candidates: list[dict]
+    confounded: list[str] = field(default_factory=list)
+    given_the_others: list[dict] = field(default_factory=list)
+
+
+def name_effects(steps: Diagnosis, base: Hypothesis, base_values: np.ndarray) -> Naming:
+    """Greedy forward selection over the library."""
+    confounded: list[str] = []
+    given_the_others: list[dict] = []
     current, values = base, base_values
     current_val = base_val = steps.val_losses(current, values)
     current_train = float(steps.train_fit.loss(current, values[None])[0])
@@ -121,7 +132,7 @@ def name_effects(
             for item in tied:
                 item[0]["confounded_with"] = [name for name in rivals if name != item[0]["name"]]
             if not current.effects:  # a tie in a later round adds nothing, the named effects stand
-                steps.confounded = sorted(rivals)
+                confounded = sorted(rivals)
             break
         chosen[0]["chosen"] = True
         _, current, values, _, _ = chosen
@@ -130,9 +141,8 @@ def name_effects(
         values, current_train = steps.train_fit.least_squares(current, values, steps.budget.lsq_iterations)
         current_val = steps.val_losses(current, values)
     if len(current.effects) > 1:
-        current, values = drop_passengers(steps, current, values, current_val, base_val, records)
-    steps.timings["naming_s"] = time.perf_counter() - started
-    return current, values, records
+        current, values = drop_passengers(steps, current, values, current_val, base_val, records, given_the_others)
+    return Naming(current, values, records, confounded, given_the_others)
 
 
 def judge(
@@ -228,12 +238,13 @@ def drop_passengers(
     current_val: np.ndarray,
     base_val: np.ndarray,
     records: list,
+    given_the_others: list[dict],
 ) -> tuple[Hypothesis, np.ndarray]:
     """Each effect must pass the rule given the others: refit without it, and drop it if the model with it is not
     significantly better on val by the later margin (a passenger that rode in on the first effect's model-form
-    error)."""
+    error). Each judgement is appended to `given_the_others`."""
     for effect in current.effects:
-        others = Hypothesis(current.n_bodies, tuple(e for e in current.effects if e is not effect))
+        others = current.with_effects(tuple(e for e in current.effects if e is not effect))
         other_values, _ = steps.train_fit.least_squares(
             others, others.start(current, values), steps.budget.lsq_iterations
         )
@@ -246,7 +257,7 @@ def drop_passengers(
         airborne = airborne_gain(steps, others, other_values, current, values) if effect.in_flight else None
         meaningful = steps.decision.meaningful(effect, False, closes, improvement, airborne)
         kept = bool(steps.decision.significant(effect, improvement, ci, airborne) and meaningful and not negligible)
-        steps.given_the_others.append(
+        given_the_others.append(
             {
                 "name": effect.name,
                 "val_improvement": improvement,

@@ -20,7 +20,6 @@ segments, not full rollouts.
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -34,7 +33,7 @@ from contactbench.diagnosis.segments import UNSTABLE_RESIDUAL, Segments
 from contactbench.recordings import Recordings, Split
 
 if TYPE_CHECKING:
-    from contactbench.diagnosis.pipeline import Diagnosis
+    from contactbench.diagnosis.state import Diagnosis
 
 log = logging.getLogger(__name__)
 
@@ -209,7 +208,6 @@ def corrected(residuals: np.ndarray, correction: Correction, dictionary: Diction
 def explain(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray) -> dict:
     """The sparse phase-gated correction (diagnosis.open_world) fitted on train, judged on val like an effect,
     and checked once on the test split's segments."""
-    started = time.perf_counter()
     valid = steps.train_split.valid_mask()
     origin = steps.train_split.poses[..., :2][valid].reshape(-1, 2).mean(axis=0)
     train = _inputs(steps, steps.train_fit, steps.train_split, hypothesis, values, origin)
@@ -256,7 +254,6 @@ def explain(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray) -> dic
         len(correction.terms),
         "passes" if record["passes"] else "does not pass",
     )
-    steps.timings["open_world_s"] = time.perf_counter() - started
     return record
 
 

@@ -1,151 +1,30 @@
-"""The diagnosis of a dataset as its four steps: fit the base simulator, then locate, name, model and prove.
-
-Diagnosis holds what every step shares (the splits, their short-horizon segments and fits, the random stream); each
-step is a module of functions of it: locate.py, naming.py (name), open_world.py and predictable.py (model what the
-library does not name), proof.py (prove on the held-out test split)."""
+"""The diagnosis of a dataset, its steps in order: the model-free measurements and the base fit (diagnosis.state),
+the contact law (contact_law.py), then locate, name, model what the library does not name and prove: each step a
+module of functions of the shared state that returns what it found (locate.py, naming.py, open_world.py and
+predictable.py, proof.py); this module runs them and writes the document."""
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
-
-import numpy as np
 
 from contactbench.diagnosis import (
     contact_law,
-    contact_signatures,
-    free_flight,
     locate,
     naming,
     open_world,
     predictable,
     proof,
     simulated_drag,
-    velocities,
 )
 from contactbench.diagnosis.decision import Decision
-from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.free_flight import MEASURED
-from contactbench.diagnosis.library import Hypothesis, library
-from contactbench.diagnosis.segments import SegmentSimulator, cut_segments
-from contactbench.errors import ContactbenchError
-from contactbench.recordings import Recordings, Split
+from contactbench.diagnosis.state import Budget, Diagnosis
+from contactbench.generation.effects import EFFECT_NAMES
+from contactbench.recordings import Recordings
+from contactbench.sim.engines import engine
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Budget:
-    segment_frames: int = 16  # frames simulated from each recorded state before the next reset
-    fit_trajectories: int = 60  # train trajectories the fits see
-    val_trajectories: int = 120  # val trajectories that judge the candidates
-    base_evaluations: int = 160  # NGOpt evaluations of the base parameters before least squares
-    batch: int = 16  # candidates per batched rollout in the global search
-    lsq_iterations: int = 12  # least-squares function evaluations per fit (each Jacobian adds one batch)
-    front_runners: int = 10  # effects fitted in full after screening, per round (10: the whole library)
-    max_effects: int = 2
-    bootstrap: int = 1000
-    open_world_terms: int = 8  # most terms of the open-world correction (diagnosis.open_world)
-    # The other engines' contact laws (diagnosis.contact_law): train trajectories their fits see, and global-search
-    # evaluations per engine and contact option.
-    law_trajectories: int = 60
-    law_evaluations: int = 160
-
-
-def _pick(rng: np.random.Generator, count: int, limit: int) -> np.ndarray:
-    return np.sort(rng.choice(count, size=min(count, limit), replace=False))
-
-
-class Diagnosis:
-    """What the steps share, on a dataset the models may see (train, val, test; no meta.generator)."""
-
-    def __init__(
-        self,
-        dataset: Recordings,
-        budget: Budget = Budget(),
-        decision: Decision = Decision(),
-        *,
-        seed: int = 0,
-        context_frames: int = 6,
-    ):
-        if "generator" in dataset.meta:
-            raise ContactbenchError("diagnosis must not see meta.generator: pass dataset.for_models([...])")
-        # Recorded velocities in the convention the simulators restart from (diagnosis.velocities; its own generator,
-        # as the model-free checks below: the steps' draws stay as they were).
-        self.velocities = velocities.check(dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence)
-        dataset = velocities.aligned(dataset, self.velocities)
-        self.dataset = dataset
-        self.budget = budget
-        self.decision = decision
-        self.context_frames = context_frames
-        self.rng = np.random.default_rng(seed)
-        self.seed = seed
-        # First, model-free: do bodies in free flight fall at meta.gravity, and does a drag slow them? (Its own
-        # generator: the steps' draws stay as they were.) Its train measurement is where the gravity_scale effect's
-        # fit starts.
-        self.free_flight = free_flight.check(
-            dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence
-        )
-        # And in contact: friction against slip direction, speed and place, spin and roll decay, bounces.
-        self.contact = contact_signatures.measure(
-            dataset, np.random.default_rng(seed), budget.bootstrap, decision.confidence
-        )
-        self.library = library(
-            float(dataset.widths().max()),
-            self.free_flight["scale"] or 1.0,
-            self.free_flight["gravity_evidence"],
-            self.free_flight["drag_evidence"],
-            self.contact["evidence"],
-        )
-        train, val = dataset.split("train"), dataset.split("val")
-        fit_rows = _pick(self.rng, train.n_trajectories, budget.fit_trajectories)
-        val_rows = _pick(self.rng, val.n_trajectories, budget.val_trajectories)
-        self.train_split = train.select(fit_rows)
-        self.train_fit = ResidualFit(
-            SegmentSimulator(dataset, cut_segments(dataset, self.train_split, budget.segment_frames))
-        )
-        self.val_split = val.select(val_rows)
-        self.val_fit = ResidualFit(
-            SegmentSimulator(dataset, cut_segments(dataset, self.val_split, budget.segment_frames))
-        )
-        self.timings: dict[str, float] = {}
-        self.confounded: list[str] = []  # effects the first naming round could not tell apart
-        self.given_the_others: list[dict] = []  # each named effect judged against the model without it
-        self._test: tuple[Split, ResidualFit] | None = None  # test segments, cut when first needed
-        self._halves: ResidualFit | None = None  # half-length val segments, cut when first needed
-
-    def fit_base(self) -> tuple[Hypothesis, np.ndarray]:
-        started = time.perf_counter()
-        hypothesis = Hypothesis(self.dataset.n_bodies)
-        values = self.train_fit.global_search(hypothesis, self.budget.base_evaluations, self.budget.batch, self.seed)
-        # From here on every fit and comparison uses the same robust loss.
-        self.val_fit.scale = self.train_fit.calibrate(hypothesis, values)
-        values, loss = self.train_fit.least_squares(hypothesis, values, self.budget.lsq_iterations)
-        log.info("base fit: train loss %.5f, %s", loss, hypothesis.reported(values)["base"])
-        self.timings["base_fit_s"] = time.perf_counter() - started
-        return hypothesis, values
-
-    def val_losses(self, hypothesis: Hypothesis, values: np.ndarray) -> np.ndarray:
-        """Per-trajectory mean robust loss of the short-horizon residuals on val [N_val]."""
-        residuals = self.val_fit.residuals(hypothesis, values[None])[0]
-        return self.val_fit.simulator.trajectory_losses(self.val_fit.robust(residuals), self.val_split.n_trajectories)
-
-    def test_segments(self) -> tuple[Split, ResidualFit]:
-        """The test split and its short-horizon segments, cut once, scored with the robust loss of train."""
-        if self._test is None:
-            split = self.dataset.split("test")
-            segments = SegmentSimulator(self.dataset, cut_segments(self.dataset, split, self.budget.segment_frames))
-            self._test = split, ResidualFit(segments, scale=self.train_fit.scale)
-        return self._test
-
-    def half_segments(self) -> ResidualFit:
-        """Half-length val segments (free-flight evidence, naming.airborne_gain), cut when first needed: few tosses fly
-        clear of the floor for a whole 16-frame segment (a tetrahedron's: 15 of 165 val tosses; at 8 frames 163)."""
-        if self._halves is None:
-            segments = cut_segments(self.dataset, self.val_split, max(self.budget.segment_frames // 2, 1))
-            self._halves = ResidualFit(SegmentSimulator(self.dataset, segments), scale=self.val_fit.scale)
-        return self._halves
 
 
 def _verdict(effects: list, confounded: list[str], unexplained: dict | None, confirmed: bool) -> str:
@@ -193,8 +72,8 @@ def _unexplained(open_world_record: dict, predictor: dict, contact: dict, candid
 
 def run_diagnosis(
     dataset: Recordings,
-    budget: Budget = Budget(),
-    decision: Decision = Decision(),
+    budget: Budget | None = None,
+    decision: Decision | None = None,
     *,
     seed: int = 0,
     context_frames: int = 6,
@@ -203,27 +82,42 @@ def run_diagnosis(
     """The diagnosis document (diagnosis.json) and the arrays its report draws; `engines`: the contact laws compared
     (diagnosis.contact_law), MuJoCo among them."""
     started = time.perf_counter()
+    budget, decision = budget or Budget(), decision or Decision()
     contact_law.check_engines(engines)
     steps = Diagnosis(dataset, budget, decision, seed=seed, context_frames=context_frames)
     falling = steps.free_flight
     log.info("%s", falling["sentence"])
     base, base_values = steps.fit_base()
-    # The contact law first: every engine fitted alike, the best on val, what the others miss where, on test.
-    law, _ = contact_law.compare(steps, base, base_values, engines)
+    # The contact law first: every engine fitted alike, the best on val, what the others miss where, on test. Names
+    # are then fitted on the best law whose engine models the library in this scene.
+    law, ranked, law_seconds = contact_law.compare(steps, base, base_values, engines)
+    steps.timings |= law_seconds
     log.info("contact law: %s", law["finding"])
+    modelled = {c.engine: engine(c.engine).library_effects(dataset) for c in ranked}
+    naming_law = next(c for c in ranked if modelled[c.engine])
+    if naming_law.engine != "mujoco":
+        steps.use_engine(naming_law.engine, modelled[naming_law.engine])
+        base, base_values = steps.fit_base(naming_law.hypothesis, naming_law.values)
+    law["naming_base"] = naming_law.label
+    law["not_modelled_on_naming_base"] = sorted(set(EFFECT_NAMES) - modelled[naming_law.engine])
     located = locate.locate(steps, base, base_values)
-    final, final_values, candidates = naming.name_effects(steps, base, base_values)
+    clock = time.perf_counter()
+    naming_found = naming.name_effects(steps, base, base_values)
+    steps.timings["naming_s"] = time.perf_counter() - clock
+    final, final_values, candidates = naming_found.hypothesis, naming_found.values, naming_found.candidates
     named_on_val = final.names
     final, final_values, each_on_test = proof.each_effect(steps, final, final_values)
     held, before, after = proof.prove(steps, base, base_values, final, final_values)
     held["each_effect"] = each_on_test
     open_world_record = predictor = unexplained = None
-    if not held["confirmed"] and not steps.confounded:
+    if not held["confirmed"] and not naming_found.confounded:
         # Nothing named is proven: before saying `none` (or leaving an unconfirmed name as the answer), is what the
         # model misses predictable? First the sparse correction (terms a person can read), then a flexible predictor;
         # both of the model named on val (the base where nothing was), so that what an unconfirmed candidate does
         # explain is not read as something missing besides it.
+        clock = time.perf_counter()
         open_world_record = open_world.explain(steps, final, final_values)
+        steps.timings["open_world_s"] = time.perf_counter() - clock
         predictor = predictable.check(steps, final, final_values)
         unexplained = _unexplained(open_world_record, predictor, steps.contact, named_on_val)
     effects = []
@@ -239,18 +133,17 @@ def run_diagnosis(
                 "mujoco": effect.mujoco,
             }
         )
-        if effect.name == "air_drag" and "drag_ci95" in falling["splits"].get("val", {}):
+        if effect.name == "air_drag" and final.engine == "mujoco" and "drag_ci95" in falling["splits"].get("val", {}):
             # wind is left out: free flight measures its drag in moving air, not the drag's size
             simulated = simulated_drag.drag_per_metre(dataset, final.contact_parameters(final_values), steps.rng)
             effects[-1]["against_free_flight"] = simulated_drag.against_free_flight(simulated, falling["splits"]["val"])
     document = {
-        "verdict": _verdict(effects, steps.confounded, unexplained, confirmed=held["confirmed"]),
+        "verdict": _verdict(effects, naming_found.confounded, unexplained, confirmed=held["confirmed"]),
         "contact_law": law,
-        # The library is modelled in MuJoCo only so far: names are fitted and proven on MuJoCo whichever law fits best.
-        "naming_base": "mujoco",
+        "naming_base": naming_law.label,
         "effects": effects,
-        "confounded": steps.confounded,
-        "given_the_others": steps.given_the_others,
+        "confounded": naming_found.confounded,
+        "given_the_others": naming_found.given_the_others,
         "unexplained": unexplained,
         "open_world": open_world_record,
         "predictable": predictor,
@@ -297,4 +190,5 @@ def run_diagnosis(
         "base_values": base_values,
         "steps": steps,
     }
+    steps.close()  # the report may simulate again: the engines' workers start anew if it does
     return document, arrays

@@ -55,7 +55,7 @@ from contactbench.recordings import Recordings, Split
 if TYPE_CHECKING:
     from contactbench.diagnosis.fitting import ResidualFit
     from contactbench.diagnosis.library import Hypothesis
-    from contactbench.diagnosis.pipeline import Diagnosis
+    from contactbench.diagnosis.state import Diagnosis
 
 # What a correction may depend on, in groups whose share of the gain is reported (judged, States.permuted); the phase
 # is the "where" and is never shuffled.

@@ -9,10 +9,10 @@ import numpy as np
 from contactbench.diagnosis.decision import bootstrap_ratio
 from contactbench.diagnosis.library import Hypothesis
 from contactbench.evaluation.scoring import score_model
-from contactbench.models.analytical import MujocoContactModel
+from contactbench.models.analytical import EngineContactModel
 
 if TYPE_CHECKING:
-    from contactbench.diagnosis.pipeline import Diagnosis
+    from contactbench.diagnosis.state import Diagnosis
 
 
 def short_horizon(
@@ -37,8 +37,10 @@ def short_horizon(
 
 def full_rollouts(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray) -> dict:
     """Test-split scores of the paper's protocol (full rollouts from the context frames)."""
-    model = MujocoContactModel(
-        name="+".join(("base",) + hypothesis.names), parameters=hypothesis.contact_parameters(values)
+    model = EngineContactModel(
+        name="+".join(("base",) + hypothesis.names),
+        engine=hypothesis.engine,
+        parameters=hypothesis.contact_parameters(values),
     )
     score = score_model(model, steps.dataset, "test", steps.context_frames, dataset_name=steps.dataset.name, variant="")
     return {
@@ -88,7 +90,7 @@ def each_effect(steps: Diagnosis, final: Hypothesis, final_values: np.ndarray) -
     with_all = full_rollouts(steps, final, final_values)["pos_err"]
     records, kept = [], []
     for effect in final.effects:
-        others = Hypothesis(final.n_bodies, tuple(e for e in final.effects if e is not effect))
+        others = final.with_effects(tuple(e for e in final.effects if e is not effect))
         without = full_rollouts(steps, others, others.start(final, final_values))["pos_err"]
         improvement, ci = bootstrap_ratio(
             without, with_all, steps.budget.bootstrap, steps.rng, steps.decision.confidence
@@ -100,5 +102,5 @@ def each_effect(steps: Diagnosis, final: Hypothesis, final_values: np.ndarray) -
         for record in records:
             record["kept"] = True
         return final, final_values, records
-    reduced = Hypothesis(final.n_bodies, tuple(kept))
+    reduced = final.with_effects(tuple(kept))
     return reduced, reduced.start(final, final_values), records

@@ -24,6 +24,7 @@ Conventions
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
@@ -39,11 +40,13 @@ from contactbench.generation.bullet import (
     parking_spot,
     recorded_motion,
 )
+from contactbench.generation.effects import EFFECT_NAMES
 from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.recordings import Joint, Scene
 from contactbench.sim.articulation import articulated
 from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
 from contactbench.sim.bullet_urdf import scene_files
+from contactbench.sim.effects import NO_EFFECTS, SceneEffects
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.quiet_pybullet import pybullet
 from contactbench.sim.stepped import SteppedRollouts, World
@@ -69,9 +72,7 @@ class BulletWorld(World):
     def __init__(self, scene: Scene, substeps: int = 1):
         self.scene = scene
         self.substeps = int(substeps)
-        self.coms, self.axes, self.moments = inertial_frames(scene)
-        # Every mesh frame at its centre of mass and along its principal axes (a generated scene): nothing to convert
-        self.mesh_frames_inertial = not self.coms.any() and bool(np.all(self.axes == [1.0, 0.0, 0.0, 0.0]))
+        self._inertial(NO_EFFECTS)
         self.joints = scene.joints
         self.trees = trees(scene)
         self.roots = np.array([tree.root for tree in self.trees])
@@ -83,12 +84,28 @@ class BulletWorld(World):
             for n, j in enumerate(tree.joints):
                 self.links[self.joints[j].child] = (i, n)
         self.parameters: BulletParameters | None = None
+        self.drag: SceneEffects | None = None  # the effects whose drag acts, None without a fluid
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self.bodies = self._build()
         except BaseException:
             self.close()
             raise
+
+    def _inertial(self, effects: SceneEffects) -> None:
+        """The bodies' inertial frames with `effects`' centre of mass and inertia (the world is then built anew)."""
+        self.inertial_effects = (effects.com_offset, effects.inertia_scale)
+        self.coms, self.axes, self.moments = inertial_frames(self.scene, effects)
+        # Every mesh frame at its centre of mass and along its principal axes (a generated scene): nothing to convert
+        self.mesh_frames_inertial = not self.coms.any() and bool(np.all(self.axes == [1.0, 0.0, 0.0, 0.0]))
+        masses = np.array([body.mass for body in self.scene.bodies])
+        # The inertia box of every body (MuJoCo's fluid model): the sides of the uniform box with its principal moments
+        sums = self.moments.sum(axis=1, keepdims=True)
+        self.box_sides = np.sqrt(np.maximum(6.0 * (sums - 2.0 * self.moments) / masses[:, None], 0.0))
+
+    def close(self) -> None:
+        if pybullet.isConnected(self.client):
+            pybullet.disconnect(self.client)
 
     def _build(self) -> tuple[int, ...]:
         scene, client = self.scene, self.client
@@ -192,17 +209,43 @@ class BulletWorld(World):
         if parameters == self.parameters:
             return
         scene = articulated(self.scene, parameters.articulation)
+        effects = parameters.effects
+        if self.joints and (effects.fluid_density > 0 or any(effects.wind)):
+            raise ContactbenchError("the PyBullet engine applies drag and wind to free bodies only, not to hinged ones")
         compliance = {}
         if parameters.contact_stiffness is not None:
             compliance = {
                 "contactStiffness": parameters.contact_stiffness,
                 "contactDamping": parameters.contact_damping,
             }
-        elif self.parameters is not None and self.parameters.contact_stiffness is not None:
-            # PyBullet has no way back to its rigid contact for a body: a world of the scene starts afresh.
+        # PyBullet has no way back to its rigid contact for a body, nor a way to move a centre of mass: a world of the
+        # scene starts afresh.
+        back_to_rigid = (
+            parameters.contact_stiffness is None
+            and self.parameters is not None
+            and self.parameters.contact_stiffness is not None
+        )
+        moved = (effects.com_offset, effects.inertia_scale) != self.inertial_effects
+        if back_to_rigid or moved:
+            if moved:
+                self._inertial(effects)
             self.close()
             self.client = pybullet.connect(pybullet.DIRECT)
             self.bodies = self._build()
+        pybullet.setGravity(*(self.scene.gravity * effects.gravity_scale).tolist(), physicsClientId=self.client)
+        pybullet.resetBasePositionAndOrientation(
+            self.floor,
+            (0.0, 0.0, self.scene.floor_z + effects.floor_offset),
+            rotations.wxyz_to_xyzw(rotations.tilt(*effects.floor_tilt)).tolist(),
+            physicsClientId=self.client,
+        )
+        # Friction along world x over along world y is the anisotropy (SceneEffects), their geometric mean the body's:
+        # PyBullet scales friction along the floor's own axes.
+        root = float(np.sqrt(effects.friction_anisotropy))
+        pybullet.changeDynamics(
+            self.floor, -1, anisotropicFriction=[root, 1.0 / root, 1.0], physicsClientId=self.client
+        )
+        self.drag = effects if effects.fluid_density > 0 else None
         factor = scene.inertia_scale / self.scene.inertia_scale
         inertia = factor != self.inertia_factor
         for k, (i, link) in enumerate(self.links):
@@ -286,14 +329,44 @@ class BulletWorld(World):
         )
         readings = []
         record = readings.append
+        if self.drag is not None:
+            self._push(base_poses, base_velocities)
         for _ in range(n_steps):
             step(client)
             for body in bodies:
                 record(read_pose(body, client))
                 record(read_velocity(body, client))
+            if self.drag is not None:
+                latest = engine_states(readings[-2 * len(bodies) :], 1, len(bodies))[0]
+                self._push(
+                    np.concatenate([latest[:, :3], rotations.xyzw_to_wxyz(latest[:, 3:7])], axis=1), latest[:, 7:]
+                )
         states = engine_states(readings, n_steps, len(bodies))
         poses, velocities = recorded_motion(states, base_poses[:, 3:])
         return (poses, velocities) if self.mesh_frames_inertial else self._to_mesh(poses, velocities)
+
+    def _push(self, poses: np.ndarray, velocities: np.ndarray) -> None:
+        """The inertia-box drag of MuJoCo's fluid model in moving air, applied for the next step: on each body's box
+        (its principal frame, sides s), a force -rho/2 s_j s_k |u_i| u_i along each axis i, u the velocity against the
+        wind, and a torque -rho s_i (s_j^4 + s_k^4) / 64 |w_i| w_i. `poses` [K, 7] and `velocities` [K, 6] are the
+        inertial frames' (PyBullet's)."""
+        density, wind = self.drag.fluid_density, np.asarray(self.drag.wind, dtype=float)
+        frames = rotations.to_matrix(poses[:, 3:])  # [K, 3, 3] principal axes in the world
+        local = np.einsum("kji,kj->ki", frames, velocities[:, :3] - wind)
+        spin = np.einsum("kji,kj->ki", frames, velocities[:, 3:])
+        sides = self.box_sides
+        areas = np.stack([sides[:, 1] * sides[:, 2], sides[:, 0] * sides[:, 2], sides[:, 0] * sides[:, 1]], axis=1)
+        force = -0.5 * density * areas * np.abs(local) * local
+        fourth = sides**4
+        arms = np.stack([fourth[:, 1] + fourth[:, 2], fourth[:, 0] + fourth[:, 2], fourth[:, 0] + fourth[:, 1]], axis=1)
+        torque = -density * sides * arms / 64.0 * np.abs(spin) * spin
+        for body, pose, frame, f, t in zip(self.bodies, poses, frames, force, torque):
+            pybullet.applyExternalForce(
+                body, -1, (frame @ f).tolist(), pose[:3].tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client
+            )
+            pybullet.applyExternalTorque(
+                body, -1, (frame @ t).tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client
+            )
 
     def _toss_hinged(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
         """A toss of a scene with joints: the roots' states and the joints' are read, every child placed on its
@@ -369,6 +442,25 @@ class BulletEngine(Engine):
     """PyBullet 3 (Bullet's sequential-impulse solver), the engine that generated the synthetic datasets."""
 
     name = "bullet"
+
+    def library_effects(self, scene: Scene) -> frozenset[str]:
+        """Every effect; drag and wind act on free bodies only (BulletWorld._push)."""
+        return frozenset(EFFECT_NAMES) - ({"air_drag", "wind"} if scene.joints else set())
+
+    def with_effects(
+        self,
+        parameters: BulletParameters,
+        effects: SceneEffects,
+        rolling_friction: float = 0.0,
+        torsional_friction: float = 0.0,
+    ) -> BulletParameters:
+        """PyBullet's own rolling and spinning friction; the rest as BulletParameters.effects (bullet_scene.py)."""
+        return replace(
+            parameters,
+            effects=effects,
+            rolling_friction=rolling_friction or parameters.rolling_friction,
+            spinning_friction=torsional_friction or parameters.spinning_friction,
+        )
 
     def check_scene(self, scene: Scene) -> None:
         """Hinges with anchors, axis, damping, friction and range are built; any other kind of joint or joint field

@@ -10,6 +10,9 @@ normal; rolling_friction (m): the same against rolling. contact_stiffness (N/m) 
 compliant contact (PyBullet turns them into each step's ERP = h k / (h k + d) and CFM = 1 / (h k + d)); None (both)
 keeps PyBullet's own rigid contact, which resolves penetration by error reduction (what the generator uses).
 articulation: a hinged scene's joint damping and friction and inertia scale (sim/articulation.py); None: as recorded.
+effects: the diagnosis' effects (sim/effects.py): gravity, the floor's pose and its friction anisotropy (PyBullet's
+own anisotropic friction), the bodies' centre of mass and inertia, and the inertia-box drag in moving air as a force
+and torque applied before every step (free bodies).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from contactbench.errors import ContactbenchError
 from contactbench.generation.scenes import BulletSettings
 from contactbench.recordings import Scene
 from contactbench.sim.articulation import Articulation
+from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertials
 from contactbench.values import freeze_numbers
 
 # the generator's engine settings: restitution threshold, floor friction and restitution
@@ -40,9 +44,10 @@ class BulletParameters:
     contact_stiffness: float | None = None
     contact_damping: float | None = None
     articulation: Articulation | None = None
+    effects: SceneEffects = NO_EFFECTS  # the diagnosis' effects (Engine.library_effects), each off by default
 
     def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction", "restitution"), skip=("articulation",))
+        freeze_numbers(self, vectors=("object_friction", "restitution"), skip=("articulation", "effects"))
         if len(self.object_friction) != len(self.restitution):
             raise ContactbenchError(
                 f"{len(self.object_friction)} frictions and {len(self.restitution)} restitutions "
@@ -64,14 +69,16 @@ class BulletParameters:
             )
 
 
-def inertial_frames(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per body: centre of mass [K, 3] and principal axes [K, 4] (w-first) in the mesh frame, principal moments [K, 3].
+def inertial_frames(scene: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per body: centre of mass [K, 3] and principal axes [K, 4] (w-first) in the mesh frame, principal moments [K, 3],
+    with `effects`' offset centre of mass and scaled inertia.
 
     Within 1e-9 of the origin and of diagonal (a generated scene's mesh frame) they are taken as exactly so, so that a
     generated dataset's world is the generator's to the last bit."""
     coms, axes, moments = [], [], []
+    centres, inertias = inertials(scene, effects)
     for k in range(scene.n_bodies):
-        com, inertia = scene.inertial(k)
+        com, inertia = centres[k], inertias[k]
         width = scene.body_mesh(k).width
         com = np.where(np.abs(com) > 1e-9 * width, com, 0.0)
         if np.abs(inertia - np.diag(np.diag(inertia))).max() <= 1e-9 * np.trace(inertia):

@@ -10,6 +10,7 @@ from typing import Any
 
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.recordings import Scene
+from contactbench.sim.effects import SceneEffects
 
 # Engine name -> the class implementing it, imported on first use (Drake is a large import).
 ENGINE_CLASSES = {
@@ -65,6 +66,16 @@ class Engine(ABC):
     @abstractmethod
     def to_values(self, parameters: Any) -> dict[str, float]:
         """{dimension name: value} of parameters (the inverse of from_values)."""
+
+    def library_effects(self, scene: Scene) -> frozenset[str]:
+        """The diagnosis library's effects (generation.effects.EFFECT_NAMES) this engine models in the scene."""
+        return frozenset()
+
+    def with_effects(
+        self, parameters: Any, effects: SceneEffects, rolling_friction: float = 0.0, torsional_friction: float = 0.0
+    ) -> Any:
+        """`parameters` with the diagnosis' effects switched on (only those of library_effects may be set)."""
+        raise NotApplicable(f"the {self.name} engine models none of the diagnosis' effects")
 
     def check_scene(self, scene: Scene) -> None:  # noqa: B027 (engines that take every scene check nothing)
         """Raise NotApplicable (one line: the job is skipped, not failed) for a scene this engine cannot simulate."""

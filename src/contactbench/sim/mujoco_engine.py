@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
+from contactbench.generation.effects import EFFECT_NAMES
 from contactbench.recordings import Scene
+from contactbench.sim.effects import SceneEffects
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.mujoco_scene import ContactParameters, scene_xml
 from contactbench.sim.rollout import MujocoRollouts
@@ -21,6 +24,20 @@ class MujocoEngine(Engine):
     """MuJoCo 3 (soft convex contact, semi-implicit Euler), rolled out by mujoco.rollout over threads."""
 
     name = "mujoco"
+
+    def library_effects(self, scene: Scene) -> frozenset[str]:
+        return frozenset(EFFECT_NAMES)
+
+    def with_effects(
+        self,
+        parameters: ContactParameters,
+        effects: SceneEffects,
+        rolling_friction: float = 0.0,
+        torsional_friction: float = 0.0,
+    ) -> ContactParameters:
+        return replace(
+            parameters, effects=effects, rolling_friction=rolling_friction, torsional_friction=torsional_friction
+        )
 
     def default_parameters(self, n_bodies: int) -> ContactParameters:
         return ContactParameters.mujoco_default(n_bodies)

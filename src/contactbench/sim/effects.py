@@ -1,0 +1,52 @@
+"""Physics beyond an engine's contact parameters that a diagnosis may switch on in any engine that models it
+(Engine.library_effects): what each one is, in the recordings' terms."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from contactbench.errors import ContactbenchError
+from contactbench.recordings import Scene
+from contactbench.values import freeze_numbers
+
+
+@dataclass(frozen=True)
+class SceneEffects:
+    """Physics outside Table 2c, each off by default; diagnose.py switches them on when recordings ask for it."""
+
+    fluid_density: float = 0.0  # kg/m^3: MuJoCo's inertia-box fluid model (quadratic drag on every body)
+    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m/s, world frame; acts through fluid_density only
+    friction_anisotropy: float = 1.0  # floor friction along world x / along world y (their geometric mean is fixed)
+    com_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, body frame, added to every body's centre of mass
+    inertia_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # multiplies every body's inertia along the mesh axes
+    floor_offset: float = 0.0  # m, the floor's height above the recordings' floor_z
+    floor_tilt: tuple[float, float] = (0.0, 0.0)  # rad, the floor's rotation about world x, then about world y
+    # The simulated gravity / the recordings' meta.gravity: with the recorded velocities as initial states this is
+    # exactly a tracker time base off by sqrt(gravity_scale) (contact stiffness and damping are fitted anyway).
+    gravity_scale: float = 1.0
+
+    def __post_init__(self):
+        freeze_numbers(self, vectors=("wind", "com_offset", "inertia_scale", "floor_tilt"))
+        if not (
+            self.fluid_density >= 0
+            and self.friction_anisotropy > 0
+            and min(self.inertia_scale) > 0
+            and self.gravity_scale > 0
+        ):
+            raise ContactbenchError(
+                f"fluid density must be >= 0, friction anisotropy, inertia and gravity scales > 0, got {self}"
+            )
+
+
+NO_EFFECTS = SceneEffects()
+
+
+def inertials(dataset: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray]:
+    """Every body's centre of mass [K, 3] (mesh frame) and inertia tensor about it [K, 3, 3] in the scene with
+    `effects` (an offset centre of mass, scaled inertias)."""
+    root_scale = np.sqrt(np.array(effects.inertia_scale))
+    properties = [dataset.inertial(k) for k in range(dataset.n_bodies)]
+    coms = np.stack([com + np.array(effects.com_offset) for com, _ in properties])
+    return coms, np.stack([root_scale[:, None] * inertia * root_scale[None, :] for _, inertia in properties])
