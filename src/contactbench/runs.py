@@ -323,7 +323,7 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     """Diagnose a recordings dataset (never reading meta.generator); writes diagnosis.json and report.md. Returns the
     verdict."""
     from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
-    from contactbench.diagnosis.report import budget_sentence, summary_sentence, write_diagnosis
+    from contactbench.diagnosis.report import budget_sentence, console_paragraph, write_diagnosis
 
     settings.check(cfg)
     folders.check(cfg, Path(output_dir), "diagnose")
@@ -349,6 +349,5 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     document["conclusive"] = document["budget_name"] != "smoke"  # smoke checks the pipeline runs, nothing more
     document["budget_note"] = budget_sentence(document)
     report = write_diagnosis(document, arrays, Path(output_dir))
-    log.info("%s", summary_sentence(document))
-    log.info("report: %s", report)
+    log.info("%s", console_paragraph(document, report))
     return document["verdict"]

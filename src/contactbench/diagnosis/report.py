@@ -45,6 +45,12 @@ def budget_sentence(document: dict) -> str:
     return f"Budget: {name} ({size})."
 
 
+def console_paragraph(document: dict, report: Path) -> str:
+    """What diagnose.py says last: the verdict, what it rests on, and where the report is."""
+    conclusive = "" if document.get("conclusive", True) else " (not conclusive)"
+    return f"Verdict: {document['verdict']}{conclusive}. {summary_sentence(document)} Report: {report}"
+
+
 def summary_sentence(document: dict) -> str:
     text = contact_law_report.short(document.get("contact_law")) + _verdict_sentence(document)
     falling = document.get("free_flight") or {}
@@ -269,13 +275,10 @@ def _markdown(document: dict, figures: list[Path]) -> str:
     lines = [
         "# Diagnosis",
         "",
-        summary_sentence(document),
+        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. "
+        + summary_sentence(document),
         "",
         budget_sentence(document),
-        "",
-        f"Verdict: **{document['verdict']}**{'' if document.get('conclusive', True) else ' (not conclusive)'}. Rule: "
-        f"{rule['rule']}. Margins: {rule['margin']:.0%} (first round and the open-world correction), "
-        f"{rule['later_margin']:.0%} (later rounds).",
         "",
         *contact_law_report.lines(
             document.get("contact_law"), document.get("naming_base", "mujoco"), document.get("seconds", {})
@@ -362,6 +365,13 @@ def _markdown(document: dict, figures: list[Path]) -> str:
             f"{located['segment_shares'][p]:.3f} | {'yes' if located['above_noise_floor'][p] else 'no'} |"
         )
     lines += ["", *[f"![{path.stem}](figures/{path.name})" for path in figures], ""]
+    lines += [
+        "## The rule",
+        "",
+        f"{rule['rule']}. Margins: {rule['margin']:.0%} (first round and the open-world correction), "
+        f"{rule['later_margin']:.0%} (later rounds).",
+        "",
+    ]
     return "\n".join(lines)
 
 
