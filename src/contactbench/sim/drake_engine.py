@@ -65,9 +65,12 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
     AddCompliantHydroelasticProperties,
     AddContactMaterial,
@@ -82,12 +85,20 @@ from pydrake.geometry import (
     Sphere,
 )
 from pydrake.math import RigidTransform
+from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, ContactModel, CoulombFriction, MultibodyPlant
+from pydrake.multibody.plant import (
+    AddMultibodyPlantSceneGraph,
+    ContactModel,
+    CoulombFriction,
+    ExternallyAppliedSpatialForce,
+    MultibodyPlant,
+)
 from pydrake.multibody.tree import FixedOffsetFrame, RevoluteJoint, RotationalInertia, SpatialInertia
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
+from contactbench import rotations
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.meshes import obj_text
@@ -107,6 +118,7 @@ from contactbench.sim.drake_scene import (
     hull_vertices,
 )
 from contactbench.sim.drake_sdf import mesh_file_name, scene_sdf, sdf_joint_frictions
+from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertial_frames, inertials
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
 
@@ -168,8 +180,9 @@ def new_plant(scene: Scene, substeps: int, contact_model: str) -> tuple[DiagramB
     return builder, plant, scene_graph
 
 
-def spatial_inertia(scene: Scene, k: int) -> SpatialInertia:
-    com, inertia = scene.inertial(k)
+def spatial_inertia(scene: Scene, k: int, effects: SceneEffects = NO_EFFECTS) -> SpatialInertia:
+    centres, inertias = inertials(scene, effects)
+    com, inertia = centres[k], inertias[k]
     rotational = RotationalInertia(
         inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]
     )
@@ -194,7 +207,7 @@ def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, para
     only (see the module docstring)."""
     hulls, vertices = [], []
     for k in range(scene.n_bodies):
-        rigid_body = plant.AddRigidBody(f"body{k}", spatial_inertia(scene, k))
+        rigid_body = plant.AddRigidBody(f"body{k}", spatial_inertia(scene, k, parameters.effects))
         pose, hull = hull_shape(scene, k, parameters.contact_model)
         properties = body_properties(parameters, k)
         hulls.append(plant.RegisterCollisionGeometry(rigid_body, pose, hull, f"body{k}", properties))
@@ -209,7 +222,11 @@ def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, para
                 )
     add_hinges(plant, scene)
     floor_body = plant.AddRigidBody("floor", SpatialInertia.Zero())
-    plant.WeldFrames(plant.world_frame(), floor_body.body_frame(), RigidTransform([0.0, 0.0, scene.floor_z]))
+    effects = parameters.effects
+    floor_pose = RigidTransform(
+        Quaternion(rotations.tilt(*effects.floor_tilt)), [0.0, 0.0, scene.floor_z + effects.floor_offset]
+    )
+    plant.WeldFrames(plant.world_frame(), floor_body.body_frame(), floor_pose)
     floor = plant.RegisterCollisionGeometry(
         floor_body, RigidTransform(), HalfSpace(), "floor", floor_properties(parameters)
     )
@@ -261,6 +278,63 @@ class JointFriction(LeafSystem):
         force = np.zeros(self._plant.num_velocities())
         force[self._rate_index] = -np.clip(rates / (self._step * mobility), -self._frictions, self._frictions)
         output.SetFromVector(force)
+
+
+class FluidDrag(LeafSystem):
+    """MuJoCo's inertia-box drag in moving air (as PyBullet's world applies it, bullet_engine.BulletWorld._push) on
+    the plant's free bodies, through its applied spatial-force input: on each body's box (its principal frame, sides
+    s), a force -rho/2 s_j s_k |u_i| u_i along each axis i, u the centre of mass's velocity against the wind, and a
+    torque -rho s_i (s_j^4 + s_k^4) / 64 |w_i| w_i."""
+
+    def __init__(self, plant: MultibodyPlant, scene: Scene, effects: SceneEffects):
+        LeafSystem.__init__(self)
+        self._density, self._wind = effects.fluid_density, np.asarray(effects.wind, dtype=np.float64)
+        self._coms, axes, moments = inertial_frames(scene, effects)
+        self._axes = rotations.to_matrix(axes)  # [K, 3, 3] principal axes in the body frame
+        masses = np.array([body.mass for body in scene.bodies])
+        sums = moments.sum(axis=1, keepdims=True)
+        sides = np.sqrt(np.maximum(6.0 * (sums - 2.0 * moments) / masses[:, None], 0.0))
+        self._areas = np.stack([sides[:, 1] * sides[:, 2], sides[:, 0] * sides[:, 2], sides[:, 0] * sides[:, 1]], 1)
+        fourth = sides**4
+        arms = np.stack([fourth[:, 1] + fourth[:, 2], fourth[:, 0] + fourth[:, 2], fourth[:, 0] + fourth[:, 1]], 1)
+        self._spin_drag = sides * arms / 64.0
+        bodies = [plant.GetBodyByName(f"body{k}") for k in range(scene.n_bodies)]
+        self._indices = [body.index() for body in bodies]
+        self._positions = [body.floating_positions_start() for body in bodies]
+        self._velocities = [plant.num_positions() + body.floating_velocities_start_in_v() for body in bodies]
+        self._state = self.DeclareVectorInputPort("state", plant.num_positions() + plant.num_velocities())
+        self.DeclareAbstractOutputPort(
+            "spatial_forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]), self._forces
+        )
+
+    def _forces(self, context, output) -> None:
+        state = self._state.Eval(context)
+        forces = []
+        for k, index in enumerate(self._indices):
+            q = state[self._positions[k] : self._positions[k] + 4]
+            rotation = rotations.to_matrix(q / np.linalg.norm(q))  # body frame in the world
+            spin = state[self._velocities[k] : self._velocities[k] + 3]
+            linear = state[self._velocities[k] + 3 : self._velocities[k] + 6]
+            principal = rotation @ self._axes[k]
+            local = principal.T @ (linear + np.cross(spin, rotation @ self._coms[k]) - self._wind)
+            turning = principal.T @ spin
+            force = -0.5 * self._density * self._areas[k] * np.abs(local) * local
+            torque = -self._density * self._spin_drag[k] * np.abs(turning) * turning
+            applied = ExternallyAppliedSpatialForce()
+            applied.body_index = index
+            applied.p_BoBq_B = self._coms[k]
+            applied.F_Bq_W = SpatialForce(principal @ torque, principal @ force)
+            forces.append(applied)
+        output.set_value(forces)
+
+
+def add_fluid_drag(builder: DiagramBuilder, plant: MultibodyPlant, scene: Scene, effects: SceneEffects) -> None:
+    """FluidDrag on the finalized plant's free bodies (none without a fluid)."""
+    if effects.fluid_density <= 0:
+        return
+    drag = builder.AddSystem(FluidDrag(plant, scene, effects))
+    builder.Connect(plant.get_state_output_port(), drag.get_input_port(0))
+    builder.Connect(drag.get_output_port(0), plant.get_applied_spatial_force_input_port())
 
 
 def add_joint_friction(builder: DiagramBuilder, plant: MultibodyPlant, frictions: list[float]) -> None:
@@ -371,6 +445,7 @@ class DrakeWorld(World):
         scene = articulated(self.scene, parameters.articulation) if self.scene_file is None else self.scene
         substeps = self.substeps * refinement
         builder, plant, scene_graph = new_plant(scene, substeps, parameters.contact_model)
+        plant.mutable_gravity_field().set_gravity_vector(scene.gravity * parameters.effects.gravity_scale)
         if self.scene_file is None:
             add_scene(plant, scene_graph, scene, parameters)
             frictions = [joint.friction for joint in scene.joints]
@@ -379,6 +454,8 @@ class DrakeWorld(World):
             frictions = sdf_joint_frictions(self.scene_file, len(scene.joints))
         plant.Finalize()
         add_joint_friction(builder, plant, frictions)
+        if self.scene_file is None:
+            add_fluid_drag(builder, plant, scene, parameters.effects)
         self._simulations[key] = _Simulation(builder, plant, scene, substeps)
         if len(self._simulations) > SIMULATIONS_KEPT:
             self._simulations.popitem(last=False)
@@ -412,6 +489,23 @@ class DrakeEngine(Engine):
     """Drake's compliant point contact (or hydroelastic) in a discrete MultibodyPlant."""
 
     name = "drake"
+
+    def library_effects(self, scene: Scene) -> frozenset[str]:
+        """Gravity, the floor's pose, the bodies' centre of mass and inertia, and drag in moving air (free bodies);
+        Drake's contact has no anisotropic, rolling or torsional friction."""
+        modelled = {"gravity_scale", "floor_offset", "floor_tilt", "com_offset", "inertia_mismatch"}
+        return frozenset(modelled | (set() if scene.joints else {"air_drag", "wind"}))
+
+    def with_effects(
+        self,
+        parameters: DrakeParameters,
+        effects: SceneEffects,
+        rolling_friction: float = 0.0,
+        torsional_friction: float = 0.0,
+    ) -> DrakeParameters:
+        if rolling_friction or torsional_friction or effects.friction_anisotropy != 1.0:
+            raise NotApplicable("Drake's contact has no rolling, torsional or anisotropic friction")
+        return replace(parameters, effects=effects)
 
     def default_parameters(self, n_bodies: int) -> DrakeParameters:
         return DrakeParameters(

@@ -42,6 +42,7 @@ from scipy.spatial import ConvexHull
 from contactbench.errors import ContactbenchError
 from contactbench.recordings import Scene
 from contactbench.sim.articulation import Articulation
+from contactbench.sim.effects import NO_EFFECTS, SceneEffects
 from contactbench.values import freeze_numbers
 
 CONTACT_MODELS = ("point", "hydroelastic")
@@ -70,9 +71,10 @@ class DrakeParameters:
     contact_model: str = "point"  # "point" or "hydroelastic"
     hydroelastic_modulus: float = DRAKE_DEFAULT_HYDROELASTIC_MODULUS  # Pa, every body; hydroelastic contact only
     articulation: Articulation | None = None  # hinged scenes: joint damping, friction and inertia; None: as recorded
+    effects: SceneEffects = NO_EFFECTS  # the diagnosis' effects Drake models (DrakeEngine.library_effects)
 
     def __post_init__(self):
-        freeze_numbers(self, vectors=("object_friction",), skip=("contact_model", "articulation"))
+        freeze_numbers(self, vectors=("object_friction",), skip=("contact_model", "articulation", "effects"))
         frictions = self.object_friction + (self.floor_friction,)
         if self.contact_model not in CONTACT_MODELS:
             raise ContactbenchError(f"Drake contact_model must be one of {CONTACT_MODELS}, got {self.contact_model!r}")

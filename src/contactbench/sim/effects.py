@@ -1,5 +1,5 @@
 """Physics beyond an engine's contact parameters that a diagnosis may switch on in any engine that models it
-(Engine.library_effects): what each one is, in the recordings' terms."""
+(Engine.library_effects): what each one is, in the recordings' terms, and the bodies' inertial frames with them."""
 
 from __future__ import annotations
 
@@ -7,9 +7,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.recordings import Scene
 from contactbench.values import freeze_numbers
+
+# The diagnosis library's effects by name (Engine.library_effects answers in them): each is a SceneEffects field an
+# engine may model, and a switch the generator can turn on in PyBullet without telling (generation/effects.py).
+EFFECT_NAMES = (
+    "air_drag",
+    "wind",
+    "rolling_friction",
+    "torsional_friction",
+    "anisotropic_friction",
+    "com_offset",
+    "inertia_mismatch",
+    "floor_offset",
+    "floor_tilt",
+    "gravity_scale",
+)
 
 
 @dataclass(frozen=True)
@@ -50,3 +66,26 @@ def inertials(dataset: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.nd
     properties = [dataset.inertial(k) for k in range(dataset.n_bodies)]
     coms = np.stack([com + np.array(effects.com_offset) for com, _ in properties])
     return coms, np.stack([root_scale[:, None] * inertia * root_scale[None, :] for _, inertia in properties])
+
+
+def inertial_frames(scene: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per body: centre of mass [K, 3] and principal axes [K, 4] (w-first) in the mesh frame, principal moments [K, 3],
+    with `effects`' offset centre of mass and scaled inertia.
+
+    Within 1e-9 of the origin and of diagonal (a generated scene's mesh frame) they are taken as exactly so, so that a
+    generated dataset's world is the generator's to the last bit."""
+    coms, axes, moments = [], [], []
+    centres, inertias = inertials(scene, effects)
+    for k in range(scene.n_bodies):
+        com, inertia = centres[k], inertias[k]
+        width = scene.body_mesh(k).width
+        com = np.where(np.abs(com) > 1e-9 * width, com, 0.0)
+        if np.abs(inertia - np.diag(np.diag(inertia))).max() <= 1e-9 * np.trace(inertia):
+            principal, rotation = np.diag(inertia).copy(), np.eye(3)
+        else:
+            principal, rotation = np.linalg.eigh(inertia)
+            rotation[:, 2] *= np.linalg.det(rotation)  # a proper rotation
+        coms.append(com)
+        axes.append(rotations.from_matrix(rotation))
+        moments.append(principal)
+    return np.array(coms), np.array(axes), np.array(moments)
