@@ -22,10 +22,11 @@ import pybullet
 
 from contactbench import metrics, rotations
 from contactbench.generation.bullet import BulletScene
-from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.generation.scenes import SceneSpec
 from contactbench.generation.solids import solid
 from contactbench.ground import Ground
 from contactbench.recordings import read_recordings
+from contactbench.sim.bullet_world import BulletSettings
 
 SPEED_BINS = (0.0, 0.02, 0.1, 0.3, 0.6, 1.0, 2.0)  # m/s, horizontal
 FLAT_TILT = np.radians(2.0)

@@ -22,10 +22,11 @@ from contactbench.generation.generator import (
     toss_rng,
     worker_context,
 )
-from contactbench.generation.scenes import BulletSettings, SceneSpec, sample_initial_state
+from contactbench.generation.scenes import SceneSpec, sample_initial_state
 from contactbench.generation.solids import solid
 from contactbench.meshes import Mesh
 from contactbench.recordings import read_recordings, write_recordings
+from contactbench.sim.bullet_world import BulletSettings
 
 SETTINGS = BulletSettings()
 CUBE_SPEC = SceneSpec("frictioncubes", friction=0.5, restitution=0.0)

@@ -12,9 +12,10 @@ from contactbench.diagnosis.library import Hypothesis, library
 from contactbench.diagnosis.state import Budget, Diagnosis
 from contactbench.errors import ContactbenchError
 from contactbench.generation.generator import generate_dataset
-from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.generation.scenes import SceneSpec
 from contactbench.recordings import read_recordings
 from contactbench.sim.bullet_scene import BulletParameters
+from contactbench.sim.bullet_world import BulletSettings
 
 TINY = Budget(
     fit_trajectories=12,

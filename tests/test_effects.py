@@ -8,11 +8,13 @@ import pytest
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.generation.bullet import BulletScene
-from contactbench.generation.effects import EFFECT_NAMES, ConcealedEffects
+from contactbench.generation.effects import ConcealedEffects
 from contactbench.generation.generator import generate_dataset
-from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.generation.scenes import SceneSpec
 from contactbench.generation.solids import WIDTH, solid
 from contactbench.recordings import read_recordings
+from contactbench.sim.bullet_world import BulletSettings
+from contactbench.sim.effects import EFFECT_NAMES
 from contactbench.sim.mujoco_scene import ContactParameters, SceneEffects
 from contactbench.sim.rollout import MujocoRollouts
 

@@ -17,7 +17,7 @@ from contactbench.config import CONFIG_DIR
 from contactbench.errors import NotApplicable
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.nonconvex import SHAPES, nonconvex_shape
-from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.generation.scenes import SceneSpec
 from contactbench.generation.terrain import RAMP_DEGREES, STEP_HEIGHT
 from contactbench.ground import Ground, signed_distance
 from contactbench.kinematics import hinge_child, world_vertices
@@ -27,6 +27,7 @@ from contactbench.models.gnn.module import inertia_per_mass
 from contactbench.models.gnn.rigid import RigidLearnedSimulator
 from contactbench.models.hybrid.dynamics import single_body_scene
 from contactbench.recordings import RecordingsError, read_recordings, write_recordings
+from contactbench.sim.bullet_world import BulletSettings
 from contactbench.sim.engines import engine
 from contactbench.sim.mujoco_scene import ContactParameters, StateLayout, build_model
 from contactbench.sim.rollout import MujocoRollouts

@@ -10,13 +10,14 @@ import pybullet
 import pytest
 
 from contactbench import rotations
-from contactbench.generation.bullet import CONTACT_KEYS, BulletScene, recorded_motion
+from contactbench.generation.bullet import CONTACT_KEYS, BulletScene
 from contactbench.generation.generator import derive_seed, generate_dataset, toss_chunks, toss_rng
-from contactbench.generation.scenes import BulletSettings, SceneSpec, SpawnError, sample_initial_state
+from contactbench.generation.scenes import SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, WIDTH, convex_mesh, solid
 from contactbench.kinematics import estimate_velocities, world_vertices
 from contactbench.meshes import closedness_problem
 from contactbench.recordings import read_recordings
+from contactbench.sim.bullet_world import BulletSettings, recorded_motion
 
 SETTINGS = BulletSettings()
 CUBE = solid(6)

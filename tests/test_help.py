@@ -13,8 +13,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from contactbench.config import CONFIG_DIR, REPO_ROOT
-from contactbench.generation.effects import EFFECT_NAMES
 from contactbench.helptext import number_word
+from contactbench.sim.effects import EFFECT_NAMES
 
 # What each entry point's help must list in full: every option of these config groups.
 LISTED = {

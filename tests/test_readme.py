@@ -25,7 +25,7 @@ from omegaconf import OmegaConf, open_dict
 
 from contactbench import helptext, runs, settings
 from contactbench.config import CONFIG_DIR, REPO_ROOT
-from contactbench.generation.effects import EFFECT_NAMES
+from contactbench.sim.effects import EFFECT_NAMES
 
 README = REPO_ROOT / "README.md"
 PAGES = [README, *sorted((REPO_ROOT / "docs").glob("*.md"))]
@@ -373,7 +373,7 @@ def test_the_effect_count_the_docs_state_is_the_library_s():
     ]
     assert len(claims) >= 3, claims  # README, DIAGNOSIS.md, MODELS.md
     wrong = [(name, found) for name, found in claims if number(found) != len(EFFECT_NAMES)]
-    assert not wrong, f"the library has {len(EFFECT_NAMES)} effects (generation/effects.py); the docs say {wrong}"
+    assert not wrong, f"the library has {len(EFFECT_NAMES)} effects (sim/effects.py); the docs say {wrong}"
 
 
 def test_the_variant_counts_the_docs_state_are_conf_variant_s():

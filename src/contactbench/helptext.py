@@ -60,7 +60,7 @@ def count(group: str) -> int:
 
 def effects() -> str:
     """How many effects diagnose.py's library models, in words."""
-    from contactbench.generation.effects import EFFECT_NAMES
+    from contactbench.sim.effects import EFFECT_NAMES
 
     return number_word(len(EFFECT_NAMES))
 

@@ -11,8 +11,7 @@ import numpy as np
 
 from contactbench.diagnosis.free_flight import INCONCLUSIVE, MARGIN, MEASURED, RULED_OUT
 from contactbench.errors import ContactbenchError
-from contactbench.generation.effects import EFFECT_NAMES
-from contactbench.sim.effects import SceneEffects
+from contactbench.sim.effects import EFFECT_NAMES, SceneEffects
 from contactbench.sim.engines import engine
 from contactbench.sim.mujoco_scene import MUJOCO_DEFAULT_SOLIMP, ContactParameters
 
@@ -93,7 +92,7 @@ def library(
     drag: str = INCONCLUSIVE,
     contact: dict[str, str] | None = None,
 ) -> dict[str, Effect]:
-    """The candidate effects for bodies of the given width (m); their names are generation.effects.EFFECT_NAMES.
+    """The candidate effects for bodies of the given width (m); their names are sim.effects.EFFECT_NAMES.
     `gravity_scale`: where the gravity_scale fit starts, the train split's free-flight measurement (1: off);
     `gravity` / `drag`: what the free-flight check says of an apparent gravity / a drag on val (diagnosis.free_flight:
     MEASURED, RULED_OUT, INCONCLUSIVE). A drag there is air_drag's or wind's (drag in moving air): both share its

@@ -20,8 +20,8 @@ from contactbench.diagnosis import (
 from contactbench.diagnosis.decision import Decision
 from contactbench.diagnosis.free_flight import MEASURED
 from contactbench.diagnosis.state import Budget, Diagnosis
-from contactbench.generation.effects import EFFECT_NAMES
 from contactbench.recordings import Recordings
+from contactbench.sim.effects import EFFECT_NAMES
 from contactbench.sim.engines import engine
 
 log = logging.getLogger(__name__)

@@ -12,11 +12,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactbench import rotations
-from contactbench.generation.bullet import BODY_DYNAMICS_OVERRIDES, engine_states, forget_contacts, table_2a_world
-from contactbench.generation.scenes import BulletSettings, SceneSpec
+from contactbench.generation.scenes import SceneSpec
 from contactbench.generation.solids import WIDTH, convex_mesh
 from contactbench.kinematics import hinge_child, hinge_coordinates, world_vertices
 from contactbench.meshes import Mesh
+from contactbench.sim.bullet_world import (
+    BODY_DYNAMICS_OVERRIDES,
+    BulletSettings,
+    engine_states,
+    forget_contacts,
+    table_2a_world,
+)
 from contactbench.sim.quiet_pybullet import pybullet
 
 THICKNESS = 0.04  # m, each bar's square cross-section

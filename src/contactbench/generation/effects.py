@@ -5,21 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from contactbench.errors import ContactbenchError
+from contactbench.sim.effects import EFFECT_NAMES
 from contactbench.values import freeze_numbers
 
-# The diagnosis library's names; each maps to its PyBullet switch below and its MuJoCo model in SceneEffects.
-EFFECT_NAMES = (
-    "air_drag",
-    "wind",
-    "rolling_friction",
-    "torsional_friction",
-    "anisotropic_friction",
-    "com_offset",
-    "inertia_mismatch",
-    "floor_offset",
-    "floor_tilt",
-    "gravity_scale",
-)
 # Physics PyBullet can switch on that the diagnosis library does not list (no MuJoCo model of them there): they
 # test whether diagnose.py says `unexplained` instead of a wrong name or `none`.
 OUTSIDE_LIBRARY = ("coriolis", "floor_viscosity", "floor_centring", "spin_damping")

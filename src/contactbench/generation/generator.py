@@ -18,16 +18,10 @@ import numpy as np
 from tqdm import tqdm
 
 from contactbench.generation.articulated import Elbow, ElbowScene, sample_elbow_state
-from contactbench.generation.bullet import (
-    BODY_DYNAMICS_OVERRIDES,
-    CONTACT_KEYS,
-    ENGINE_STATE_SIZE,
-    BulletScene,
-    recorded_motion,
-)
+from contactbench.generation.bullet import CONTACT_KEYS, BulletScene
 from contactbench.generation.effects import NONE, ConcealedEffects
 from contactbench.generation.nonconvex import nonconvex_shape
-from contactbench.generation.scenes import ELBOW, BulletSettings, SceneSpec, SpawnError, sample_initial_state
+from contactbench.generation.scenes import ELBOW, SceneSpec, SpawnError, sample_initial_state
 from contactbench.generation.solids import SOLID_NAMES, solid
 from contactbench.generation.terrain import terrain
 from contactbench.ground import Ground
@@ -42,6 +36,7 @@ from contactbench.recordings import (
     static_entries,
     write_recordings,
 )
+from contactbench.sim.bullet_world import BODY_DYNAMICS_OVERRIDES, ENGINE_STATE_SIZE, BulletSettings, recorded_motion
 
 SPLIT_SIZES = {"train": 275, "val": 165, "test": 110}  # tosses per variant (paper, Section 3)
 SEEDING = (
@@ -233,7 +228,7 @@ def generate_dataset(
     Tosses are numbered across the splits in `split_sizes` order (train 0..274, val 275..439, test 440..549 by
     default); each has its own random stream, so the files are byte-identical for the same seed and spec
     whatever `workers` is. With record_contacts each split also holds the CONTACT_KEYS arrays [N, T, K, 3].
-    `effects` (generation.effects.EFFECT_NAMES) switch on physics the meta does not describe; the tosses start
+    `effects` (sim.effects.EFFECT_NAMES) switch on physics the meta does not describe; the tosses start
     exactly as without them, and only meta.generator.effects records what was switched on and how strongly.
     """
     if workers < 1:

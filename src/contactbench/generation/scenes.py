@@ -1,4 +1,5 @@
-"""Toss scene settings (paper Table 2a/2b) and sampling of non-overlapping initial states."""
+"""Toss scene variants (paper Table 2b; Table 2a's engine settings are the world's, sim/bullet_world.py) and sampling
+of non-overlapping initial states."""
 
 from __future__ import annotations
 
@@ -15,33 +16,13 @@ from contactbench.generation.solids import SOLID_NAMES
 from contactbench.generation.terrain import GROUNDS
 from contactbench.ground import Ground
 from contactbench.meshes import Mesh
+from contactbench.values import set_floats, set_vectors
 
 ELBOW = "elbow"  # the ARTICULATED family's two-link body (articulated.py)
 
 
 class SpawnError(RuntimeError):
     """A body could not be placed without overlapping the bodies placed before it."""
-
-
-@dataclass(frozen=True)
-class BulletSettings:
-    """Engine settings shared by every variant (Table 2a) and the common object properties (Section 3)."""
-
-    dt: float = 0.00676  # s per frame; one engine step per frame
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.8)
-    restitution_velocity_threshold: float = 0.0
-    floor_friction: float = 1.0
-    floor_restitution: float = 1.0
-    mass: float = 0.37  # kg, every object
-    width: float = 0.1048  # m, largest axis-aligned bounding-box extent of every object
-    frames: int = 140  # recorded frames per toss, frame 0 being the initial state
-
-    def __post_init__(self) -> None:
-        _set_floats(
-            self, "dt", "restitution_velocity_threshold", "floor_friction", "floor_restitution", "mass", "width"
-        )
-        _set_vectors(self, "gravity")
-        object.__setattr__(self, "frames", int(self.frames))
 
 
 @dataclass(frozen=True)
@@ -70,8 +51,8 @@ class SceneSpec:
         # spec hashes, compares and serialises the same however it was built.
         for key in ("name", "shape", "ground"):
             object.__setattr__(self, key, str(getattr(self, key)))
-        _set_floats(self, "friction", "restitution", "center_bias_speed", "joint_damping")
-        _set_vectors(self, "position_low", "position_high", "velocity_low", "velocity_high")
+        set_floats(self, "friction", "restitution", "center_bias_speed", "joint_damping")
+        set_vectors(self, "position_low", "position_high", "velocity_low", "velocity_high")
         for key in ("faces", "bodies", "spawn_attempts"):
             object.__setattr__(self, key, int(getattr(self, key)))
         # Physically meaningless values would still simulate (PyBullet takes them) and score: refuse them here.
@@ -118,19 +99,6 @@ class SceneSpec:
             np.greater(self.velocity_low, self.velocity_high)
         ):
             raise ValueError(f"scene {self.name!r}: a lower bound of the initial-state box exceeds its upper bound")
-
-
-def _set_floats(instance: object, *keys: str) -> None:
-    for key in keys:
-        object.__setattr__(instance, key, float(getattr(instance, key)))
-
-
-def _set_vectors(instance: object, *keys: str) -> None:
-    for key in keys:
-        vector = tuple(float(x) for x in getattr(instance, key))
-        if len(vector) != 3:
-            raise ValueError(f"{type(instance).__name__}.{key} needs 3 components, got {vector}")
-        object.__setattr__(instance, key, vector)
 
 
 def sample_initial_state(

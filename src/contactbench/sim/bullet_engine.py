@@ -3,7 +3,7 @@ URDF of the fitted scene: bullet_urdf.py).
 
 Conventions
 -----------
-* The world is the generator's (generation/bullet.py, Table 2a): one engine step per frame (dt / substeps with
+* The world is the generator's (sim/bullet_world.py, Table 2a): one engine step per frame (dt / substeps with
   substeps), no sub-stepping, restitution at any impact speed (threshold 0), deterministic pair order, and the
   bodies without PyBullet's default air drag and 1 mm collision margin (`BODY_DYNAMICS_OVERRIDES`). PyBullet combines
   two materials by multiplying their friction and their restitution; the floor carries 1 for both, so a body's own
@@ -30,7 +30,12 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError, NotApplicable
-from contactbench.generation.bullet import (
+from contactbench.kinematics import hinge_child, hinge_coordinates
+from contactbench.recordings import Joint, Scene
+from contactbench.sim.articulation import articulated
+from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
+from contactbench.sim.bullet_urdf import scene_files
+from contactbench.sim.bullet_world import (
     BODY_DYNAMICS_OVERRIDES,
     add_static,
     change_dynamics,
@@ -40,13 +45,7 @@ from contactbench.generation.bullet import (
     parking_spot,
     recorded_motion,
 )
-from contactbench.generation.effects import EFFECT_NAMES
-from contactbench.kinematics import hinge_child, hinge_coordinates
-from contactbench.recordings import Joint, Scene
-from contactbench.sim.articulation import articulated
-from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
-from contactbench.sim.bullet_urdf import scene_files
-from contactbench.sim.effects import NO_EFFECTS, SceneEffects
+from contactbench.sim.effects import EFFECT_NAMES, NO_EFFECTS, SceneEffects
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.quiet_pybullet import pybullet
 from contactbench.sim.stepped import SteppedRollouts, World

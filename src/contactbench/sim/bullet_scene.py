@@ -23,9 +23,9 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.generation.scenes import BulletSettings
 from contactbench.recordings import Scene
 from contactbench.sim.articulation import Articulation
+from contactbench.sim.bullet_world import BulletSettings
 from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertials
 from contactbench.values import freeze_numbers
 

@@ -68,7 +68,7 @@ class Engine(ABC):
         """{dimension name: value} of parameters (the inverse of from_values)."""
 
     def library_effects(self, scene: Scene) -> frozenset[str]:
-        """The diagnosis library's effects (generation.effects.EFFECT_NAMES) this engine models in the scene."""
+        """The diagnosis library's effects (sim.effects.EFFECT_NAMES) this engine models in the scene."""
         return frozenset()
 
     def with_effects(

@@ -5,9 +5,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import replace
 
-from contactbench.generation.effects import EFFECT_NAMES
 from contactbench.recordings import Scene
-from contactbench.sim.effects import SceneEffects
+from contactbench.sim.effects import EFFECT_NAMES, SceneEffects
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.mujoco_scene import ContactParameters, scene_xml
 from contactbench.sim.rollout import MujocoRollouts
