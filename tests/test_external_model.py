@@ -11,9 +11,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from test_pipeline import run_entry_point
+import pytest
+from conftest import falling_cubes
+from test_pipeline import compose_config, run_entry_point
 
+from contactbench import restore, runs
 from contactbench.config import REPO_ROOT
+from contactbench.errors import ContactbenchError
+from contactbench.recordings import write_recordings
 
 EXTERNAL = Path(__file__).parent / "external_model"
 
@@ -110,3 +115,15 @@ def run_train(overrides: list[str], tmp_path: Path, python_path: str | None) -> 
     env.update({"WANDB_MODE": "disabled", **({"PYTHONPATH": python_path} if python_path else {})})
     command = [sys.executable, str(REPO_ROOT / "train.py"), *overrides, f"paths.log_dir={tmp_path}/outputs"]
     return subprocess.run(command, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+
+
+def test_a_target_that_is_not_a_model_is_one_line_naming_the_contract(tmp_path):
+    """What a model's YAML builds is checked against models/base.py before anything is fitted, scored or loaded."""
+    write_recordings(tmp_path / "ds", falling_cubes(n_trajectories=2, n_frames=8))
+    data = ["dataset=recordings", f"recordings={tmp_path / 'ds'}"]
+    cfg = compose_config("evaluate", [*data, "model.contact_model._target_=collections.OrderedDict"], tmp_path)
+    with pytest.raises(ContactbenchError, match=r"^model.contact_model._target_ is collections.OrderedDict, not a "):
+        runs.evaluate(cfg, tmp_path / "eval")
+    cfg = compose_config("evaluate", [*data, "model=gnn", "model.module._target_=torch.nn.Linear"], tmp_path)
+    with pytest.raises(ContactbenchError, match=r"subclass of contactbench.models.base.ContactModule"):
+        restore.load_module(cfg, None, tmp_path / "no.ckpt")

@@ -10,7 +10,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig
 
 from contactbench import folders
-from contactbench.models.base import ContactModel
+from contactbench.models.base import ContactModel, ContactModule, require_contract
 from contactbench.observation import Observation
 from contactbench.recordings import Recordings, require_frames
 
@@ -47,9 +47,10 @@ def observed(cfg: DictConfig, recorded: Recordings) -> Observed:
     return Observed(dataset, truth, observation.describe(scored_against))
 
 
-def load_module(cfg: DictConfig, dataset: Recordings, checkpoint: Path):
+def load_module(cfg: DictConfig, dataset: Recordings, checkpoint: Path) -> ContactModule:
     """The Lightning module of cfg.model from a checkpoint (weights_only=True: never unpickles)."""
     module_class = get_class(cfg.model.module._target_)
+    require_contract(module_class, ContactModule, "model.module")
     return module_class.load_from_checkpoint(str(checkpoint), dataset=dataset, weights_only=True, map_location="cpu")
 
 
@@ -58,6 +59,7 @@ def load_fitted(cfg: DictConfig, dataset: Recordings, train_dir: Path) -> Contac
     record = Path(train_dir) / "fitted.json"
     if cfg.model.kind == "analytical":
         model = instantiate(cfg.model.contact_model)
+        require_contract(model, ContactModel, "model.contact_model")
         if not record.is_file() and not model.learns:
             return model  # nothing to fit (MuJoCo's defaults): no train run needed
     if not record.is_file():

@@ -17,7 +17,7 @@ from contactbench import atomic, folders, restore, settings, tracking, variants
 from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
-from contactbench.models.base import ContactModel
+from contactbench.models.base import ContactModel, ContactModule, require_contract
 from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings, require_frames
 
 log = logging.getLogger(__name__)
@@ -109,6 +109,7 @@ def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> Cont
     kind = cfg.model.kind
     if kind == "analytical":
         model = instantiate(cfg.model.contact_model)
+        require_contract(model, ContactModel, "model.contact_model")
         model.fit(dataset)
         state = model.fitted_state()
         folders.check_fitted_state(state, output_dir / "fitted.json", f"{cfg.model.name}.fitted_state()")
@@ -142,9 +143,9 @@ def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logge
         checkpoint, chosen = winner["checkpoint"], {"chosen_on_val": winner["setting"], "candidates": scores}
         tracking.log_choice(logger, winner["setting"])
     module = restore.load_module(cfg, dataset, output_dir / "checkpoints" / checkpoint)
-    summary = module.fitted_summary() if hasattr(module, "fitted_summary") else {}
     atomic.write_json(
-        output_dir / "fitted.json", {"model": cfg.model.name, "checkpoint": checkpoint, **chosen, **summary}
+        output_dir / "fitted.json",
+        {"model": cfg.model.name, "checkpoint": checkpoint, **chosen, **module.fitted_summary()},
     )
     return module.to_contact_model()
 
@@ -173,6 +174,7 @@ def _fit_one(
     # Objects (the dataset) go to the partial, not through instantiate's config merge.
     datamodule = instantiate(model_cfg.datamodule, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
     module = instantiate(model_cfg.module, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
+    require_contract(module, ContactModule, "model.module")
     callbacks = [_callback(node, checkpoint_dir) for node in model_cfg.get("callbacks", {}).values()]
     trainer = instantiate(
         cfg.trainer,

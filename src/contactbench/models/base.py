@@ -1,10 +1,23 @@
-"""The one interface every contact model implements: fit on train/val, roll out from context frames."""
+"""The contract every model satisfies, read as the spec for a model of one's own.
+
+A model's YAML says `kind: analytical` or `kind: lightning`:
+
+- analytical: `contact_model._target_` builds a `ContactModel`; train.py calls `fit`, writes `fitted_state()` to the
+  run folder's fitted.json, and evaluate.py rebuilds the model from its YAML and calls `load_fitted_state`.
+- lightning: `module._target_` builds a `ContactModule` (a LightningModule) and `datamodule._target_` its data, both
+  called with `dataset=` and `context_frames=` beside their YAML settings; Lightning fits it with the YAML's
+  `callbacks`, the checkpoint that scored best on val is kept (loaded back with weights_only=True), and its
+  `to_contact_model()` is what is scored.
+
+What fits, selects, restores and scores a model calls only what is written here.
+"""
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
 import numpy as np
+import pytorch_lightning as pl
 
 from contactbench.errors import ContactbenchError
 from contactbench.protocol import Context
@@ -49,3 +62,47 @@ class ContactModel(ABC):
     def learns(self) -> bool:
         """Whether this model's class fits anything (overrides `fit`)."""
         return type(self).fit is not ContactModel.fit
+
+
+class ContactModule(pl.LightningModule, ABC):
+    """A model trained by Lightning (`kind: lightning`). Its constructor takes `dataset` (the Recordings it trains
+    on: train and val splits) and `context_frames` beside its YAML's `module` settings, keeps the dataset as
+    `self.dataset` and saves its hyperparameters (`self.save_hyperparameters(ignore=["dataset"])`): a checkpoint
+    restores the module from them, given the dataset again.
+
+    It is selected on val by `models.selection.ValRollouts`, listed in its YAML's callbacks: at every validation that
+    rolls `selection_candidate()` out on val and logs val/pos_err, which the checkpoint callback monitors."""
+
+    dataset: Recordings
+
+    @property
+    def context_frames(self) -> int:
+        """Frames every rollout is given before it predicts (the run's `context_frames`, saved with the module)."""
+        return int(self.hparams.context_frames)
+
+    @abstractmethod
+    def to_contact_model(self) -> ContactModel:
+        """The model this module's weights or parameters define, as it is scored."""
+
+    def selection_candidate(self) -> ContactModel:
+        """What val rollouts score for checkpoint selection: by default the scored model itself (the residual model
+        scores its correction even while the identified engine alone is ahead, and chooses between them later)."""
+        return self.to_contact_model()
+
+    def record_selection(self, errors: dict[str, float]) -> None:  # noqa: B027 (optional: most modules keep nothing)
+        """Told each validation's val rollout errors ({'pos_err', 'rot_err'}), for a module that keeps them."""
+
+    def fitted_summary(self) -> dict:
+        """What the selected checkpoint learned, as JSON, added to the run folder's fitted.json (identified
+        parameters, a choice made on val); {} by default."""
+        return {}
+
+
+def require_contract(built: object, contract: type, node: str) -> None:
+    """Refuse what a model's YAML built (`node`._target_) if it is not the class the contract asks for."""
+    made = built if isinstance(built, type) else type(built)
+    if not issubclass(made, contract):
+        raise ContactbenchError(
+            f"{node}._target_ is {made.__module__}.{made.__qualname__}, not a {contract.__name__} "
+            f"(expected a subclass of {contract.__module__}.{contract.__name__}; docs/ADDING_A_MODEL.md)"
+        )

@@ -7,7 +7,7 @@ import pytorch_lightning as pl
 from pytorch_lightning.callbacks import WeightAveraging
 
 from contactbench.metrics import position_error, rotation_error
-from contactbench.models.base import ContactModel
+from contactbench.models.base import ContactModel, ContactModule
 from contactbench.protocol import make_context, scored_frames, trajectory_means
 from contactbench.recordings import Recordings
 
@@ -45,9 +45,8 @@ class ValRollouts(pl.Callback):
     """At every validation, rolls the module's contact model out on val from the shared protocol's context and logs
     `val/pos_err` and `val/rot_err`: what checkpoints and early stopping monitor, the same for every model.
 
-    The module gives `dataset` (its Recordings, val split loaded) and `hparams.context_frames`, and the model to
-    score through `selection_candidate()` where that differs from `to_contact_model()` (the residual model scores its
-    correction even while MuJoCo alone is ahead); `record_selection(errors)`, if it has one, is told the scores.
+    What it scores is the module's `selection_candidate()` on its `dataset` with its `context_frames`, and
+    `record_selection(errors)` is told the scores (models/base.py: ContactModule).
     Rolled out at the start of the validation epoch, after a weight-averaging callback listed before this one has
     swapped its average in (the average is what the checkpoint keeps); one listed after it is refused.
     """
@@ -55,7 +54,7 @@ class ValRollouts(pl.Callback):
     def __init__(self, trajectories: int | None = None):
         self.trajectories = trajectories
 
-    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+    def setup(self, trainer: pl.Trainer, pl_module: ContactModule, stage: str) -> None:
         order = trainer.callbacks.index(self)
         if any(isinstance(callback, WeightAveraging) for callback in trainer.callbacks[order + 1 :]):
             raise ValueError(
@@ -63,14 +62,12 @@ class ValRollouts(pl.Callback):
                 "checkpoint keeps the average; list the selection callback after it"
             )
 
-    def on_validation_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+    def on_validation_epoch_start(self, trainer: pl.Trainer, pl_module: ContactModule) -> None:
         if trainer.sanity_checking:
             return
-        candidate = getattr(pl_module, "selection_candidate", pl_module.to_contact_model)()
         errors = rollout_errors(
-            candidate, pl_module.dataset, "val", pl_module.hparams.context_frames, self.trajectories
+            pl_module.selection_candidate(), pl_module.dataset, "val", pl_module.context_frames, self.trajectories
         )
-        if hasattr(pl_module, "record_selection"):
-            pl_module.record_selection(errors)
+        pl_module.record_selection(errors)
         pl_module.log(POSITION_KEY, errors["pos_err"], prog_bar=True)
         pl_module.log(ROTATION_KEY, errors["rot_err"])

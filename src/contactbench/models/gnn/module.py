@@ -22,7 +22,7 @@ from torch.utils.data import BatchSampler, DataLoader, Dataset, Sampler, Sequent
 
 from contactbench.errors import NotApplicable
 from contactbench.ground import Ground
-from contactbench.models.base import ContactModel
+from contactbench.models.base import ContactModel, ContactModule
 from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, MeshScene, collision_radius
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
@@ -161,7 +161,7 @@ class GNNDataModule(pl.LightningDataModule):
         return self._loader(windows, BatchSampler(SequentialSampler(windows), self.val_batch_size, drop_last=False))
 
 
-class GNNModule(pl.LightningModule):
+class GNNModule(ContactModule):
     """Trains the learned simulator; `to_contact_model()` gives the ContactModel the benchmark scores."""
 
     def __init__(

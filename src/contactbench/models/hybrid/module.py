@@ -26,7 +26,7 @@ import torch
 from torch import nn
 from torch.utils.data import BatchSampler, DataLoader, RandomSampler, SequentialSampler, TensorDataset
 
-from contactbench.models.base import ContactModel
+from contactbench.models.base import ContactModel, ContactModule
 from contactbench.models.hybrid import dynamics, features, inverse, lcp
 from contactbench.models.hybrid.dynamics import SingleBodyScene, State
 from contactbench.models.hybrid.lcp import ContactSettings
@@ -117,7 +117,7 @@ class HybridDataModule(pl.LightningDataModule):
         return self._loader("val", SequentialSampler(range(len(self.arrays["val"][0]))))
 
 
-class HybridModule(pl.LightningModule):
+class HybridModule(ContactModule):
     """MLP (ReLU; 512, 360, 180 hidden units by default) from body features to the body-frame friction wrench."""
 
     def __init__(

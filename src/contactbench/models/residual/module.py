@@ -51,7 +51,7 @@ from contactbench import rotations
 from contactbench.config import generations
 from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.kinematics import estimate_velocities
-from contactbench.models.base import ContactModel
+from contactbench.models.base import ContactModel, ContactModule
 from contactbench.models.residual import correction
 from contactbench.models.residual.correction import Bodies, Predictor
 from contactbench.models.residual.through_mjx import MjxResidualWindows
@@ -207,7 +207,7 @@ class ResidualDataModule(pl.LightningDataModule):
         return DataLoader(self._draw("val", self.val_segments, rng), batch_size=self.batch_size)
 
 
-class ResidualModule(pl.LightningModule):
+class ResidualModule(ContactModule):
     """SysID'd MuJoCo parameters and an MLP (SiLU) from step features to a body-frame velocity correction."""
 
     def __init__(
@@ -277,7 +277,7 @@ class ResidualModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         if not torch.isfinite(self.parameters_vector).all():
             self.parameters_vector.copy_(torch.as_tensor(self._identify(), dtype=torch.float64))
-            alone = rollout_errors(self._contact_model(None), self.dataset, "val", self.hparams.context_frames)
+            alone = rollout_errors(self._contact_model(None), self.dataset, "val", self.context_frames)
             self.sysid_val_pos_err.fill_(alone["pos_err"])
             log.info(
                 "residual: SysID identified %s (val pos_err %.4f without the correction)",
@@ -295,7 +295,7 @@ class ResidualModule(pl.LightningModule):
         settings = self.hparams.sysid
         search = SysIDModule(
             self.dataset,
-            self.hparams.context_frames,
+            self.context_frames,
             seed=self.hparams.seed,
             nthread=self.hparams.nthread,
             substeps=self.hparams.substeps,
@@ -303,7 +303,7 @@ class ResidualModule(pl.LightningModule):
         )
         ticks = SysIDDataModule(
             self.dataset,
-            self.hparams.context_frames,
+            self.context_frames,
             generations(settings["evaluations"], settings["num_workers"], settings["restarts"]),
         )
         with tempfile.TemporaryDirectory(prefix="contactbench-sysid-") as scratch:

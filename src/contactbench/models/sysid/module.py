@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader
 
 from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.analytical import EngineContactModel, MujocoContactModel
+from contactbench.models.base import ContactModule
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import search_space
 from contactbench.recordings import Recordings
@@ -37,7 +38,7 @@ class SysIDDataModule(pl.LightningDataModule):
         return DataLoader(range(self.generations), batch_size=None)
 
 
-class IdentifiedModule(pl.LightningModule):
+class IdentifiedModule(ContactModule):
     """An identified engine's parameters as a Lightning module: a callback searches, `selected` holds what won on val
     (a search-space vector), `to_contact_model()` simulates with it. No torch optimiser: a step is the callback's."""
 
