@@ -17,7 +17,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from contactbench import runs
+from contactbench import fitting
 from contactbench.config import CONFIG_DIR
 
 ENTRIES = ["train", "evaluate", "generate", "diagnose"]
@@ -118,7 +118,7 @@ def check_instantiable(cfg: DictConfig, tmp_path: Path, where: str) -> None:
             contact_model.contact_parameters(falling_cubes(1, 8))  # its preset names parameters its engine has
         else:
             assert model.kind == "lightning", where
-            callbacks = [runs._callback(node, tmp_path / "checkpoints") for node in model.get("callbacks", {}).values()]
+            callbacks = fitting.make_callbacks(model, tmp_path / "checkpoints")
             if cfg.get("trainer") is not None and cfg.trainer.accelerator == "cpu":
                 instantiate(
                     cfg.trainer,

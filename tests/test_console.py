@@ -11,9 +11,9 @@ import warnings
 
 import numpy as np
 import pytest
-from test_pipeline import run_entry_point
+from test_pipeline import compose_config, run_entry_point
 
-from contactbench import rotations
+from contactbench import fitting, rotations
 from contactbench.config import REPO_ROOT
 from contactbench.models import progress
 from contactbench.protocol import make_context
@@ -69,11 +69,14 @@ def test_the_bar_names_the_setting_and_counts_steps_over_the_whole_fit():
     assert progress.where("sysid", None, 3, None) == "sysid step 3"
 
 
-def test_the_setting_is_found_from_the_grid_and_the_module_s_settings():
-    grid = {"module": {"noise_std": [1.0e-4, 2.0e-4, 4.0e-4]}}
-    assert progress.setting_of(grid, {"noise_std": 4.0e-4}) == (3, 3, "noise_std=0.0004")
-    assert progress.setting_of(grid, {"noise_std": 3.0e-4}) is None
-    assert progress.setting_of(None, {"noise_std": 4.0e-4}) is None
+def test_the_fitting_code_tells_the_progress_callback_which_setting_it_fits(tmp_path):
+    cfg = compose_config("train", ["model=gnn", "budget=smoke"], tmp_path)
+    candidates = fitting.settings_grid(cfg.model.choose_on_val)
+    setting = (3, len(candidates), fitting.setting_name(candidates[2]))
+    trainer = fitting.make_trainer(cfg, cfg.model, tmp_path / "checkpoints", tmp_path, None, setting)
+    (shown,) = [callback for callback in trainer.callbacks if isinstance(callback, progress.FitProgress)]
+    assert shown.setting == (3, 3, "noise_std=0.0004")
+    assert progress.label("gnn", shown.setting) == "gnn setting 3/3 (noise_std=0.0004)"
 
 
 def test_pybullet_is_imported_without_its_build_time_line():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 from pathlib import Path
@@ -13,11 +12,11 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from contactbench import atomic, folders, restore, settings, tracking, variants
+from contactbench import atomic, fitting, folders, restore, settings, tracking, variants
 from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
-from contactbench.models.base import ContactModel, ContactModule, require_contract
+from contactbench.models.base import ContactModel
 from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings, require_frames
 
 log = logging.getLogger(__name__)
@@ -102,107 +101,6 @@ def load_dataset(cfg: DictConfig, splits: list[str]) -> restore.Observed:
     return restore.observed(cfg, read_recordings(path, splits))
 
 
-# ---------------------------------------------------------------- models
-
-
-def _fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
-    kind = cfg.model.kind
-    if kind == "analytical":
-        model = instantiate(cfg.model.contact_model)
-        require_contract(model, ContactModel, "model.contact_model")
-        model.fit(dataset)
-        state = model.fitted_state()
-        folders.check_fitted_state(state, output_dir / "fitted.json", f"{cfg.model.name}.fitted_state()")
-        atomic.write_json(output_dir / "fitted.json", {"model": cfg.model.name, "state": state})
-        return model
-    if kind == "lightning":
-        return _fit_lightning(cfg, dataset, output_dir, logger)
-    raise ContactbenchError(f"model.kind must be 'analytical' or 'lightning', got {kind!r}")
-
-
-def _fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
-    """One fit, or one per setting of the model's `choose_on_val` grid, keeping the setting whose best checkpoint has
-    the lowest val/pos_err: the same choice for a named dataset and a user's own folder."""
-    candidates = settings_grid(cfg.model.get("choose_on_val"))
-    if not candidates:
-        checkpoint, _ = _fit_one(cfg, cfg.model, dataset, output_dir, "", logger)
-        chosen: dict = {}
-    else:
-        scores = []
-        for setting in candidates:
-            model_cfg = cfg.model.copy()
-            for key, value in setting.items():
-                OmegaConf.update(model_cfg, key, value, merge=False)
-            name = setting_name(setting)
-            best, score = _fit_one(cfg, model_cfg, dataset, output_dir, name, tracking.prefixed(logger, name))
-            log.info("%s: best val/pos_err %.4f", name, score)
-            scores.append({"setting": setting, "val_pos_err": score, "checkpoint": f"{name}/{best}"})
-        winner = min(
-            scores, key=lambda entry: entry["val_pos_err"] if math.isfinite(entry["val_pos_err"]) else math.inf
-        )
-        checkpoint, chosen = winner["checkpoint"], {"chosen_on_val": winner["setting"], "candidates": scores}
-        tracking.log_choice(logger, winner["setting"])
-    module = restore.load_module(cfg, dataset, output_dir / "checkpoints" / checkpoint)
-    atomic.write_json(
-        output_dir / "fitted.json",
-        {"model": cfg.model.name, "checkpoint": checkpoint, **chosen, **module.fitted_summary()},
-    )
-    return module.to_contact_model()
-
-
-def settings_grid(grid: DictConfig | None) -> list[dict]:
-    """Every combination of a `choose_on_val` tree under model ({module: {noise_std: [values]}}), as {dotted key:
-    value} settings (none: [])."""
-    if not grid:
-        return []
-    leaves = tracking.flatten(OmegaConf.to_container(grid))
-    keys = list(leaves)
-    return [dict(zip(keys, values)) for values in itertools.product(*(list(leaves[key]) for key in keys))]
-
-
-def setting_name(setting: dict) -> str:
-    return ",".join(f"{key.rsplit('.', 1)[-1]}={value:g}" for key, value in setting.items())
-
-
-def _fit_one(
-    cfg: DictConfig, model_cfg: DictConfig, dataset: Recordings, output_dir: Path, setting: str, logger
-) -> tuple[str, float]:
-    """Fit model_cfg's Lightning module, checkpoints in output_dir/checkpoints/<setting> (resumed from its last.ckpt
-    when cfg.resume). Returns the selected checkpoint's file name and its val/pos_err (NaN without one)."""
-    checkpoint_dir = output_dir / "checkpoints" / setting
-    pl.seed_everything(cfg.seed, workers=True)  # every setting starts from the weights a fit of it alone starts from
-    # Objects (the dataset) go to the partial, not through instantiate's config merge.
-    datamodule = instantiate(model_cfg.datamodule, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
-    module = instantiate(model_cfg.module, _partial_=True)(dataset=dataset, context_frames=cfg.context_frames)
-    require_contract(module, ContactModule, "model.module")
-    callbacks = [_callback(node, checkpoint_dir) for node in model_cfg.get("callbacks", {}).values()]
-    trainer = instantiate(
-        cfg.trainer,
-        **model_cfg.get("trainer", {}),
-        callbacks=callbacks,
-        logger=logger if logger is not None else False,
-        default_root_dir=str(output_dir),
-    )
-    last = checkpoint_dir / "last.ckpt"
-    resume_from = str(last) if cfg.resume and last.exists() else None
-    if resume_from:
-        log.info("resuming from %s", resume_from)  # folders.check has checked its signature and contents
-        step = int(torch.load(resume_from, weights_only=True, map_location="cpu")["global_step"])
-        tracking.drop_rows_from_step(output_dir, step, prefix=f"{setting}/" if setting else "")
-    trainer.fit(module, datamodule=datamodule, ckpt_path=resume_from, weights_only=True)
-    callback = trainer.checkpoint_callback
-    best_path = callback.best_model_path if callback else ""
-    score = callback.best_model_score if callback is not None else None
-    return (Path(best_path).name if best_path else "last.ckpt"), (math.nan if score is None else float(score))
-
-
-def _callback(node: DictConfig, checkpoint_dir: Path):
-    """A configured callback; checkpoints go into the run folder, where a restarted run looks for them."""
-    if node._target_.endswith("ModelCheckpoint"):
-        return instantiate(node, dirpath=str(checkpoint_dir))
-    return instantiate(node)
-
-
 # ---------------------------------------------------------------- entry points
 
 
@@ -271,7 +169,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
     logger, status = None, "failed"
     try:
         logger = tracking.make_logger(cfg, output_dir)
-        model = _fit(cfg, dataset.for_models(["train", "val"]), output_dir, logger)
+        model = fitting.fit(cfg, dataset.for_models(["train", "val"]), output_dir, logger)
         write_scene(model, dataset, output_dir, logger)
         results = {"val": _score_and_write(cfg, model, observed, "val", output_dir / "val", logger)}
         if cfg.test:

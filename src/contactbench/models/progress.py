@@ -4,36 +4,15 @@ GNN's noise levels: "setting 2/3 (noise_std=0.0002)") and count steps to the fit
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
-from collections.abc import Mapping
 
 import pytorch_lightning as pl
-from omegaconf import DictConfig, OmegaConf
 from pytorch_lightning.callbacks import TQDMProgressBar
 
 log = logging.getLogger(__name__)
 
 Setting = tuple[int, int, str]  # k, N, "noise_std=0.0002"
-
-
-def setting_of(grid: Mapping | None, hparams: Mapping) -> Setting | None:
-    """Which setting of a `choose_on_val` grid ({module: {noise_std: [values]}}) a module was built with, in the order
-    the grid's settings are fitted (runs.settings_grid); None without a grid or where the module's own settings do not
-    say (a grid over the datamodule)."""
-    if not grid:
-        return None
-    leaves = _leaves(OmegaConf.to_container(grid) if isinstance(grid, DictConfig) else dict(grid))
-    if not all(key.startswith("module.") for key in leaves):
-        return None
-    combinations = list(itertools.product(*leaves.values()))
-    for k, values in enumerate(combinations, start=1):
-        chosen = dict(zip(leaves, values))
-        if all(_same(_get(hparams, key.removeprefix("module.")), value) for key, value in chosen.items()):
-            name = ",".join(f"{key.rsplit('.', 1)[-1]}={value:g}" for key, value in chosen.items())
-            return k, len(combinations), name
-    return None
 
 
 def label(model: str, setting: Setting | None) -> str:
@@ -55,14 +34,18 @@ def steps_total(trainer: pl.Trainer) -> int | None:
     return int(total) if math.isfinite(total) else None
 
 
-class ValidationLines(pl.Callback):
+class FitProgress:
+    """What a progress callback is told by the fitting code (fitting.make_trainer): which setting of the model's
+    `choose_on_val` grid this fit is, or None for a model fitted once."""
+
+    setting: Setting | None = None
+
+
+class ValidationLines(FitProgress, pl.Callback):
     """One log line per validation: where the fit is and the val score it is selected on."""
 
-    def __init__(self, model: str, grid: Mapping | None = None):
-        self.model, self.grid, self.setting = model, grid, None
-
-    def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self.setting = setting_of(self.grid, pl_module.hparams)
+    def __init__(self, model: str):
+        self.model = model
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if trainer.sanity_checking:
@@ -72,16 +55,13 @@ class ValidationLines(pl.Callback):
         log.info("%s%s", where(self.model, self.setting, steps_done(trainer), steps_total(trainer)), found)
 
 
-class FitBar(TQDMProgressBar):
+class FitBar(FitProgress, TQDMProgressBar):
     """Lightning's bar, named by model and setting and counting steps to the end of the fit (Lightning's counts one
     epoch's batches and starts again at the next)."""
 
-    def __init__(self, model: str, grid: Mapping | None = None):
+    def __init__(self, model: str):
         super().__init__()
-        self.model, self.grid, self.setting = model, grid, None
-
-    def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self.setting = setting_of(self.grid, pl_module.hparams)
+        self.model = model
 
     def init_train_tqdm(self):
         bar = super().init_train_tqdm()
@@ -105,29 +85,6 @@ class FitBar(TQDMProgressBar):
             bar.refresh()
 
 
-def fit_progress(model: str, grid: Mapping | None = None, bar: bool = False) -> pl.Callback:
+def fit_progress(model: str, bar: bool = False) -> FitProgress:
     """The bar where the trainer shows one (trainer.enable_progress_bar: at a terminal), else the log lines."""
-    return FitBar(model, grid) if bar else ValidationLines(model, grid)
-
-
-def _leaves(tree: dict, prefix: str = "") -> dict[str, list]:
-    found = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            found.update(_leaves(value, f"{prefix}{key}."))
-        else:
-            found[f"{prefix}{key}"] = list(value)
-    return found
-
-
-def _get(tree: Mapping, dotted: str):
-    for part in dotted.split("."):
-        tree = tree.get(part) if isinstance(tree, Mapping) else None
-    return tree
-
-
-def _same(a, b) -> bool:
-    try:
-        return math.isclose(float(a), float(b), rel_tol=1e-9)
-    except (TypeError, ValueError):
-        return a == b
+    return FitBar(model) if bar else ValidationLines(model)
