@@ -27,7 +27,8 @@ from contactbench.config import REPO_ROOT
 from contactbench.models.gnn.graph import build_edges
 from contactbench.models.gnn.module import GNNDataModule, GNNModule
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Split, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Recordings, Split
 
 SIDE_BY_SIDE_SPACING = 1.2  # widths between neighbouring cubes' origins
 

@@ -37,7 +37,8 @@ from contactbench import rotations
 from contactbench.generation.solids import SOLID_NAMES, WIDTH, convex_mesh, solid
 from contactbench.meshes import Mesh
 from contactbench.metrics import position_error
-from contactbench.recordings import FORMAT, VERSION, Recordings, Split, read_meta, read_recordings, write_recordings
+from contactbench.recordings import read_meta, read_recordings, write_recordings
+from contactbench.scene import FORMAT, VERSION, Recordings, Split
 
 DT = 0.00676  # s between frames: the benchmark's generated datasets (frictioncubes meta.json)
 SUBSTEPS = 7  # physics steps per frame: a 0.97 ms (about 1 kHz) PyBullet step

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from contactbench.config import REPO_ROOT
-from contactbench.recordings import Split, read_recordings, write_recordings
+from contactbench.recordings import read_recordings, write_recordings
+from contactbench.scene import Split
 
 SPLITS = ("train", "val", "test")
 

@@ -13,7 +13,8 @@ import mujoco.rollout
 import numpy as np
 
 from contactbench.kinematics import estimate_velocities
-from contactbench.recordings import Recordings, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts, counted_warnings
 

@@ -8,7 +8,7 @@ import torch
 
 from contactbench import rotations
 from contactbench.meshes import Mesh
-from contactbench.recordings import FORMAT, VERSION, Recordings, Split
+from contactbench.scene import FORMAT, VERSION, Recordings, Split
 
 
 def cube_mesh(width: float = 0.1) -> Mesh:

@@ -18,7 +18,8 @@ from contactbench.kinematics import hinge_anchor, hinge_child, hinge_coordinates
 from contactbench.meshes import Mesh
 from contactbench.models.sysid.search_space import search_space
 from contactbench.protocol import make_context
-from contactbench.recordings import FORMAT, SCENE_VERSION, Scene, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import FORMAT, SCENE_VERSION, Scene
 from contactbench.sim.articulation import Articulation
 from contactbench.sim.bullet_engine import BulletEngine, BulletWorld
 from contactbench.sim.bullet_scene import BulletParameters

@@ -18,7 +18,8 @@ from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED, RULED_OUT
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.scenes import SceneSpec
 from contactbench.kinematics import hinge_child
-from contactbench.recordings import Recordings, Split, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Recordings, Split
 from contactbench.sim.engines import engine
 from contactbench.sim.mujoco_scene import ContactParameters
 

@@ -13,8 +13,8 @@ from hydra import compose, initialize_config_dir
 
 from contactbench import contactnets_elbow, kinematics, metrics, rotations, runs
 from contactbench.config import CONFIG_DIR
-from contactbench.errors import ContactbenchError, NotApplicable
-from contactbench.recordings import RecordingsError, read_recordings, write_recordings
+from contactbench.errors import ContactbenchError, NotApplicable, RecordingsError
+from contactbench.recordings import read_recordings, write_recordings
 
 SHIPPED = CONFIG_DIR.parent / "assets" / "contactnets_elbow"
 

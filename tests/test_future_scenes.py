@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 
 from contactbench import metrics, rotations, runs
 from contactbench.config import CONFIG_DIR
-from contactbench.errors import NotApplicable
+from contactbench.errors import NotApplicable, RecordingsError
 from contactbench.generation.generator import generate_dataset
 from contactbench.generation.nonconvex import SHAPES, nonconvex_shape
 from contactbench.generation.scenes import SceneSpec
@@ -26,7 +26,7 @@ from contactbench.models.gnn.graph import MeshScene, collision_radius
 from contactbench.models.gnn.module import inertia_per_mass
 from contactbench.models.gnn.rigid import RigidLearnedSimulator
 from contactbench.models.hybrid.dynamics import single_body_scene
-from contactbench.recordings import RecordingsError, read_recordings, write_recordings
+from contactbench.recordings import read_recordings, write_recordings
 from contactbench.sim.bullet_world import BulletSettings
 from contactbench.sim.engines import engine
 from contactbench.sim.mujoco_scene import ContactParameters, StateLayout, build_model

@@ -22,7 +22,8 @@ from contactbench.models.gnn.shape_matching import fit_rigid_transform, poses_fr
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator, random_walk_noise
 from contactbench.models.selection import ValRollouts, rollout_errors
 from contactbench.protocol import make_context
-from contactbench.recordings import Recordings, Split, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Recordings, Split
 
 TINY = {"latent_size": 16, "message_passing_steps": 2}
 

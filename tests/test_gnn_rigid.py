@@ -22,7 +22,8 @@ from contactbench.models.gnn.graph import MeshScene, build_edges, collision_radi
 from contactbench.models.gnn.module import GNNDataModule, GNNModule, inertia_per_mass
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
 from contactbench.protocol import make_context
-from contactbench.recordings import Split, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Split
 from contactbench.tracking import ResumableCSVLogger, drop_rows_from_step
 
 TINY = {"latent_size": 16, "message_passing_steps": 2}

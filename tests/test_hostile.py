@@ -29,9 +29,9 @@ from hypothesis import strategies as st
 from test_pipeline import compose_config, run_entry_point
 
 from contactbench import cli, runs, settings
-from contactbench.errors import ContactbenchError
+from contactbench.errors import ContactbenchError, RecordingsError
 from contactbench.models.sysid.module import NevergradSearch, check_search_state
-from contactbench.recordings import RecordingsError, read_recordings, write_recordings
+from contactbench.recordings import read_recordings, write_recordings
 
 SYSID = ["model=sysid", "dataset=contactnets_cube", "budget=smoke"]
 EXTERNAL_CONF = Path(__file__).parent / "external_model" / "conf"  # a model of one's own (docs/ADDING_A_MODEL.md)

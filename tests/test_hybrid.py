@@ -27,7 +27,7 @@ from contactbench.models.hybrid.dynamics import State
 from contactbench.models.hybrid.module import training_arrays
 from contactbench.models.selection import ValRollouts
 from contactbench.protocol import make_context
-from contactbench.recordings import FORMAT, VERSION, Recordings, Split
+from contactbench.scene import FORMAT, VERSION, Recordings, Split
 
 MASS = 0.37
 WIDTH = 0.1

@@ -13,7 +13,8 @@ from contactbench import rotations
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import make_context
-from contactbench.recordings import Recordings, Split, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Recordings, Split
 from contactbench.sim.mujoco_scene import ContactParameters, SceneEffects, build_model, pack_state, unpack_state
 from contactbench.sim.rollout import MujocoRollouts, mechanical_energy, rollout_context
 

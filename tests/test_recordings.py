@@ -11,7 +11,8 @@ import pytest
 from conftest import falling_cubes
 
 from contactbench.config import REPO_ROOT
-from contactbench.recordings import RecordingsError, read_recordings, write_recordings
+from contactbench.errors import RecordingsError
+from contactbench.recordings import read_recordings, write_recordings
 
 REAL_CUBE = REPO_ROOT / "assets" / "contactnets_cube"
 

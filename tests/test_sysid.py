@@ -17,7 +17,8 @@ from contactbench.models.sysid.module import stop_recast_threads
 from contactbench.models.sysid.objective import ConfigurationObjective, length_groups
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context, scored_frames, trajectory_means
-from contactbench.recordings import Split, read_recordings
+from contactbench.recordings import read_recordings
+from contactbench.scene import Split
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts
 

@@ -37,7 +37,8 @@ import numpy as np
 from contactbench import kinematics, rotations
 from contactbench.errors import ContactbenchError
 from contactbench.meshes import Mesh
-from contactbench.recordings import Recordings, Split, write_recordings
+from contactbench.recordings import write_recordings
+from contactbench.scene import Recordings, Split
 
 FRAMES, COLUMNS = 121, 15
 N_TOSSES = 541

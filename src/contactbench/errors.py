@@ -5,6 +5,10 @@ class ContactbenchError(ValueError):
     """Raised for input a user can fix (a malformed dataset, a model that does not apply to a dataset, ...)."""
 
 
+class RecordingsError(ContactbenchError):
+    """A dataset that does not follow the recordings format; the message names file, field and place."""
+
+
 class NotApplicable(ContactbenchError):
     """A model that does not apply to a dataset (e.g. a single-body model on several bodies): a sweep skips the job."""
 

@@ -21,7 +21,7 @@ import torch
 
 from contactbench import rotations
 from contactbench.meshes import Mesh
-from contactbench.recordings import HeightField, Scene, Static
+from contactbench.scene import HeightField, Scene, Static
 
 
 def halfspaces(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,7 @@ from contactbench.ground import Ground, signed_distance
 from contactbench.kinematics import hinge_errors, world_vertices
 from contactbench.meshes import Mesh
 from contactbench.protocol import scored_frames, trajectory_means
-from contactbench.recordings import Joint
+from contactbench.scene import Joint
 
 # Two edges whose directions' cross product is shorter than this (the sine of their angle) are treated as parallel:
 # their cross product names no axis, and the faces of both bodies already cover that configuration.

@@ -20,7 +20,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import numpy as np
 
 from contactbench.errors import ContactbenchError
 from contactbench.kinematics import fit_velocities
-from contactbench.recordings import Split
+from contactbench.scene import Split
 
 
 @dataclass(frozen=True)

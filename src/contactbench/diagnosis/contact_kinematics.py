@@ -21,7 +21,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.diagnosis.free_flight import systems
 from contactbench.diagnosis.phases import CONTACT_HEIGHT, recorded_velocities
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 # Vertices within this fraction of the body width above the lowest one carry the contact (engines sink 5-10 mm and
 # rock, so a resting face's vertices lie up to a few mm apart).

@@ -16,7 +16,7 @@ import numpy as np
 
 from contactbench.diagnosis.contact_kinematics import split_kinematics
 from contactbench.diagnosis.phases import IMPACT_SPEED, SLIP_SPEED
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 # Flat on a face (contact_kinematics.FLAT_ANGLE) and the body tilting slower than this at its edges
 # (|w_horizontal| width / 2).

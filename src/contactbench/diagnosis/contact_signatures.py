@@ -27,7 +27,7 @@ from contactbench.diagnosis.contact_statistics import (
     speed_change,
 )
 from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED, RULED_OUT, resample_weights, systems
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 SPLITS = ("train", "val", "test")
 

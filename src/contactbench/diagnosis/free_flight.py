@@ -19,7 +19,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.kinematics import world_vertices
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 from contactbench.sim.bullet_scene import trees
 
 SPLITS = ("train", "val", "test")

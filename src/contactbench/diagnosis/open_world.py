@@ -30,7 +30,7 @@ from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.library import Hypothesis
 from contactbench.diagnosis.phases import FREE, IMPACT, PHASES, label_phases, recorded_velocities
 from contactbench.diagnosis.segments import UNSTABLE_RESIDUAL, Segments
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 if TYPE_CHECKING:
     from contactbench.diagnosis.state import Diagnosis

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from contactbench.kinematics import estimate_velocities, world_vertices
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 PHASES = ("free", "impact", "sliding", "rolling", "rest")
 FREE, IMPACT, SLIDING, ROLLING, REST = range(len(PHASES))

@@ -20,7 +20,7 @@ from contactbench.diagnosis import (
 from contactbench.diagnosis.decision import Decision
 from contactbench.diagnosis.free_flight import MEASURED
 from contactbench.diagnosis.state import Budget, Diagnosis
-from contactbench.recordings import Recordings
+from contactbench.scene import Recordings
 from contactbench.sim.effects import EFFECT_NAMES
 from contactbench.sim.engines import engine
 

@@ -50,7 +50,7 @@ from contactbench.diagnosis.phases import (
 )
 from contactbench.diagnosis.segments import UNSTABLE_RESIDUAL, Segments
 from contactbench.kinematics import world_vertices
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 if TYPE_CHECKING:
     from contactbench.diagnosis.fitting import ResidualFit

@@ -8,7 +8,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.diagnosis.phases import FREE, IMPACT, PHASES, clearances, label_phases, recorded_velocities
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 from contactbench.sim.engines import engine
 
 # Residual components, world frame: linear (normal = along gravity, tangential), angular (normal, tangential),

@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 
 from contactbench import rotations
-from contactbench.recordings import Recordings
+from contactbench.scene import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters, build_model
 
 PROBES = 64  # orientations (each with its own direction of motion) per body

@@ -16,7 +16,7 @@ from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.library import Hypothesis, library
 from contactbench.diagnosis.segments import SegmentSimulator, cut_segments
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 log = logging.getLogger(__name__)
 

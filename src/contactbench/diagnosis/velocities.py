@@ -19,7 +19,7 @@ import dataclasses
 import numpy as np
 
 from contactbench.diagnosis.free_flight import SPLITS, free_frames, resample_weights
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 # The offset must exceed this fraction of |g| dt (the velocity gravity adds in one frame) to count: 1/2 and 3/7 of it
 # are the conventions above; PyBullet data stored by the project's generator show 0 to rounding.

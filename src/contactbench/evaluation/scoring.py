@@ -17,7 +17,7 @@ from contactbench.ground import Ground
 from contactbench.metrics import MetricsResult, compute_metrics
 from contactbench.models.base import ContactModel
 from contactbench.protocol import make_context
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from contactbench import rotations
 from contactbench.generation.effects import NONE, ConcealedEffects
 from contactbench.generation.scenes import SceneSpec
 from contactbench.meshes import Mesh
-from contactbench.recordings import Static
+from contactbench.scene import Static
 from contactbench.sim.bullet_world import (
     BODY_DYNAMICS_OVERRIDES,
     BulletSettings,

@@ -26,16 +26,8 @@ from contactbench.generation.solids import SOLID_NAMES, solid
 from contactbench.generation.terrain import terrain
 from contactbench.ground import Ground
 from contactbench.meshes import Mesh
-from contactbench.recordings import (
-    FORMAT,
-    SCENE_VERSION,
-    VERSION,
-    Recordings,
-    Split,
-    Static,
-    static_entries,
-    write_recordings,
-)
+from contactbench.recordings import write_recordings
+from contactbench.scene import FORMAT, SCENE_VERSION, VERSION, Recordings, Split, Static, static_entries
 from contactbench.sim.bullet_world import BODY_DYNAMICS_OVERRIDES, ENGINE_STATE_SIZE, BulletSettings, recorded_motion
 
 SPLIT_SIZES = {"train": 275, "val": 165, "test": 110}  # tosses per variant (paper, Section 3)

@@ -9,7 +9,7 @@ import numpy as np
 from contactbench.errors import ContactbenchError
 from contactbench.models.base import ContactModel
 from contactbench.protocol import Context
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.engines import engine
 from contactbench.sim.mujoco_scene import ContactParameters
 

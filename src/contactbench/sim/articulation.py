@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.engines import Dimension
 from contactbench.values import freeze_numbers
 

@@ -31,7 +31,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.kinematics import hinge_child, hinge_coordinates
-from contactbench.recordings import Joint, Scene
+from contactbench.scene import Joint, Scene
 from contactbench.sim.articulation import articulated
 from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
 from contactbench.sim.bullet_urdf import scene_files

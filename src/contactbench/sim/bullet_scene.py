@@ -23,7 +23,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.articulation import Articulation
 from contactbench.sim.bullet_world import BulletSettings
 from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertials

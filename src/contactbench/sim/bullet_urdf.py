@@ -9,7 +9,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.meshes import obj_text
-from contactbench.recordings import Joint, Scene
+from contactbench.scene import Joint, Scene
 from contactbench.sim.articulation import articulated
 from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
 from contactbench.sim.bullet_world import BODY_DYNAMICS_OVERRIDES

@@ -15,7 +15,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.meshes import Mesh, obj_text
-from contactbench.recordings import Static
+from contactbench.scene import Static
 from contactbench.sim.quiet_pybullet import pybullet
 from contactbench.values import set_floats, set_vectors
 

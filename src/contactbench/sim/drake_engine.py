@@ -102,8 +102,8 @@ from contactbench import rotations
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.meshes import obj_text
-from contactbench.recordings import Scene
 from contactbench.rotations import normalize
+from contactbench.scene import Scene
 from contactbench.sim.articulation import articulated
 from contactbench.sim.drake_scene import (
     DISCRETE_CONTACT_APPROXIMATION,

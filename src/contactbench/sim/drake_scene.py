@@ -40,7 +40,7 @@ from pydrake.multibody.plant import DiscreteContactApproximation
 from scipy.spatial import ConvexHull
 
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.articulation import Articulation
 from contactbench.sim.effects import NO_EFFECTS, SceneEffects
 from contactbench.values import freeze_numbers

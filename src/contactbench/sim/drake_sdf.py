@@ -9,7 +9,7 @@ from xml.etree import ElementTree
 import numpy as np
 
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.articulation import articulated
 from contactbench.sim.drake_scene import (
     DISCRETE_CONTACT_APPROXIMATION,

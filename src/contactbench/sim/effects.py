@@ -9,7 +9,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.values import freeze_numbers
 
 # The diagnosis library's effects by name (Engine.library_effects answers in them): each is a SceneEffects field an

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from contactbench.errors import ContactbenchError, NotApplicable
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.effects import SceneEffects
 
 # Engine name -> the class implementing it, imported on first use (Drake is a large import).

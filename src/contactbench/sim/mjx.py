@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from contactbench.errors import NotApplicable
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.mujoco_scene import ContactParameters, build_model
 
 

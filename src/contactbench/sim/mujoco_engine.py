@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import replace
 
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.effects import EFFECT_NAMES, SceneEffects
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.mujoco_scene import ContactParameters, scene_xml

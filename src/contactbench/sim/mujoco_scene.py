@@ -42,7 +42,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.kinematics import hinge_child, hinge_coordinates
-from contactbench.recordings import Joint, Scene, Static
+from contactbench.scene import Joint, Scene, Static
 from contactbench.sim.articulation import Articulation, articulated
 from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertials
 from contactbench.values import freeze_numbers

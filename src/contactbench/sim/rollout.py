@@ -23,7 +23,7 @@ import numpy as np
 
 from contactbench import rotations
 from contactbench.protocol import Context
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.mujoco_scene import (
     NO_EFFECTS,
     ContactParameters,

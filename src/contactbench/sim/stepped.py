@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from contactbench.errors import ContactbenchError
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.mujoco_scene import body_frame_velocities
 from contactbench.sim.rollout import Rollouts, SimulationResult, available_cores, unstable_frames
 

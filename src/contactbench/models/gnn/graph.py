@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from contactbench.kinematics import world_vertices
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 
 DEFAULT_COLLISION_RADIUS_FRACTION = 0.8
 

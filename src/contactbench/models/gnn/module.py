@@ -27,7 +27,7 @@ from contactbench.models.gnn.graph import DEFAULT_COLLISION_RADIUS_FRACTION, Mes
 from contactbench.models.gnn.rigid import RigidGNNContactModel, RigidLearnedSimulator
 from contactbench.models.gnn.simulator import GNNContactModel, LearnedSimulator
 from contactbench.models.selection import evenly_spaced
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 LR_SCHEDULES = ("constant", "cosine")
 

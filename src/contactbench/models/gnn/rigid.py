@@ -54,7 +54,7 @@ from contactbench.models.gnn import quaternions
 from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.simulator import STATISTICS_CHUNK, LearnedSimulator, check_same_scene, random_walk_noise
 from contactbench.protocol import Context
-from contactbench.recordings import Joint, Scene, Split
+from contactbench.scene import Joint, Scene, Split
 
 SEPARATION_SWEEPS = 4  # Jacobi sweeps of the pairwise separation: enough for a stack of five
 

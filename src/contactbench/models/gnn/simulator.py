@@ -36,7 +36,7 @@ from contactbench.models.gnn.graph import MeshScene, build_edges
 from contactbench.models.gnn.network import EncodeProcessDecode
 from contactbench.models.gnn.shape_matching import poses_from_vertices, project_to_rigid
 from contactbench.protocol import Context
-from contactbench.recordings import Scene, Split
+from contactbench.scene import Scene, Split
 
 EDGE_FEATURES = 9
 # Floor on the normalisation scales (m/s, m/s²): a train split without motion along an axis would divide by zero.

@@ -16,7 +16,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.errors import NotApplicable
 from contactbench.kinematics import estimate_velocities
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 
 
 class SingleBodyError(NotApplicable):

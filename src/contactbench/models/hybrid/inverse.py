@@ -34,7 +34,7 @@ import numpy as np
 from contactbench.models.hybrid import dynamics, lcp
 from contactbench.models.hybrid.dynamics import SingleBodyScene, State
 from contactbench.models.hybrid.lcp import ContactSettings
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 
 BULLET_CONTACT_EXTRAS = (
     "contact_normal_force",

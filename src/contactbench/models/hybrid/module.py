@@ -31,7 +31,7 @@ from contactbench.models.hybrid import dynamics, features, inverse, lcp
 from contactbench.models.hybrid.dynamics import SingleBodyScene, State
 from contactbench.models.hybrid.lcp import ContactSettings
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Scene, Split
+from contactbench.scene import Recordings, Scene, Split
 
 FrictionPredictor = Callable[[np.ndarray], np.ndarray]  # body features [B, 9 + V] -> body-frame friction wrench [B, 6]
 

@@ -24,7 +24,7 @@ import numpy as np
 from contactbench import rotations
 from contactbench.errors import NotApplicable
 from contactbench.kinematics import world_vertices
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.rollout import kinetic_energies
 
 LOWEST_VERTICES = 4  # the body's vertices nearest the floor that the features describe (a tetrahedron has four)

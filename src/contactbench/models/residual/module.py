@@ -59,7 +59,7 @@ from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import Context
-from contactbench.recordings import Recordings, Scene, Split
+from contactbench.scene import Recordings, Scene, Split
 from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities, pack_state, scene_xml
 from contactbench.sim.rollout import MujocoRollouts
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from contactbench.models.residual.correction import LOWEST_VERTICES, NEIGHBOUR_FEATURES, Bodies
-from contactbench.recordings import Scene
+from contactbench.scene import Scene
 from contactbench.sim.mjx import import_mjx, pose_loss, scanned_solver, truncated
 from contactbench.sim.mujoco_scene import ContactParameters, build_model
 

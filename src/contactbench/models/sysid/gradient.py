@@ -30,7 +30,7 @@ from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint, val_subset
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
-from contactbench.recordings import Recordings, Split
+from contactbench.scene import Recordings, Split
 from contactbench.sim import articulation
 from contactbench.sim.engines import Dimension
 from contactbench.sim.mjx import import_mjx, inertia_constants, pose_loss, require_mjx, truncated

@@ -20,7 +20,7 @@ from contactbench.models.analytical import EngineContactModel, MujocoContactMode
 from contactbench.models.base import ContactModule
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import search_space
-from contactbench.recordings import Recordings
+from contactbench.scene import Recordings
 from contactbench.sim import engines
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ import numpy as np
 
 from contactbench.metrics import configuration_error
 from contactbench.protocol import Context, make_context, scored_frames, trajectory_means
-from contactbench.recordings import Recordings
+from contactbench.scene import Recordings
 from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import Rollouts
 
