@@ -16,7 +16,8 @@ main: $(VENV)/.installed
 # other engines untuned and identified: bullet_default, sysid_bullet, drake_default, sysid_drake} x 34
 # synthetic variants (the paper's 22 and the 12 of its future work) + the real cube, scored on val and test, then the report. The hybrid model skips multi-body
 # variants with one line each; `make matrix SEEDS=3` fits every cell with seeds 0, 1, 2 and the report shows their mean
-# and spread. `make matrix BUDGET=paper ARGS='hydra/launcher=cluster hydra.launcher.partition=<yours>'` sends the same
+# and 95% interval; the report writes the repository's results/$(BUDGET).csv, one row a cell (the committed results).
+# `make matrix BUDGET=paper ARGS='hydra/launcher=cluster hydra.launcher.partition=<yours>'` sends the same
 # sweep to a Slurm cluster (docs/CLUSTER.md).
 BUDGET ?= quick
 SEEDS ?= 1
@@ -24,7 +25,7 @@ ARGS ?=
 matrix: $(VENV)/.installed
 	$(BIN)/python generate.py -m 'variant=glob(*)'
 	$(BIN)/python train.py -m experiment=matrix budget=$(BUDGET) $(if $(filter-out 1,$(SEEDS)),'seed=range($(SEEDS))') $(ARGS)
-	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/$(BUDGET)
+	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/$(BUDGET) --results results
 
 # A real single-node Slurm on this machine (root; apt-get install slurm-wlm munge): a small matrix through
 # hydra/launcher=cluster, one GNN job killed with scontrol requeue and resumed, the report counting every job done.

@@ -181,8 +181,9 @@ def test_the_report_names_budget_seed_and_source_and_warns_when_a_table_mixes_bu
     )
     assert "| quick | evaluate.py: evaluate/mujoco_default/budget=quick,seed=0,split=test |" in every
     grid = section(text, "Test position error")
-    assert "| dataset | variant | budget | mujoco_default | sysid |" in grid
-    assert "| frictioncubes | friction=0 | smoke | – | 0.250 / 0.300 |" in grid  # not averaged with the quick fit
+    assert "| dataset | variant | budget | mujoco_default | sysid | not significant (95%) |" in grid
+    # not averaged with the quick fit, and alone in its row: nothing to compare
+    assert "| frictioncubes | friction=0 | smoke | – | 0.250 [0.250–0.250] / 0.300 [0.300–0.300] | – |" in grid
     (warning,) = [line for line in grid.splitlines() if "more than one budget" in line]
     assert "quick" in warning and "smoke" in warning
 

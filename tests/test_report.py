@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 from matplotlib.colors import to_hex
 from test_pipeline import smoke_train_sweep
 
 from contactbench.evaluation import figures, renders
+from contactbench.evaluation.collect import expected_cells
 from contactbench.evaluation.figures import Run, error_over_time_figure, model_colour, sweep_figure, titles
-from contactbench.evaluation.report import expected_cells, write_report
+from contactbench.evaluation.report import write_report
 
 
 def saved_figures(monkeypatch) -> list:
@@ -82,9 +85,11 @@ def test_tiny_matrix_multirun_then_report(tmp_path, monkeypatch):
     for figure in ("frictioncubes.png", "fig7c_lowest_vertex.png"):
         assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
     # the grid: one row per variant, a column per model, test position / rotation with val position beside
-    assert "| dataset | variant | budget | mujoco_default | sysid |" in text
-    cell = r"[0-9.]+ / [0-9.]+ \(val [0-9.]+\)"
-    assert len(re.findall(rf"^\| frictioncubes \| friction=(0|1) \| smoke \| {cell} \| {cell} \|$", text, re.M)) == 2
+    assert "| dataset | variant | budget | mujoco_default | sysid | not significant (95%) |" in text
+    value = r"[0-9.]+ \[[0-9.]+–[0-9.]+\]"
+    cell = rf"(\*\*)?{value} / {value} \(val [0-9.]+\)(\*\*| †)?"
+    row = rf"^\| frictioncubes \| friction=(0|1) \| smoke \| {cell} \| {cell} \| [^|]+ \|$"
+    assert len(re.findall(row, text, re.M)) == 2
     for figure in ("error_over_time_frictioncubes.png", "error_over_time_frictioncubes.svg"):
         assert (tmp_path / "sweep" / "figures" / figure).stat().st_size > 10_000
     # Table 3 only over the dimension these runs vary (friction), saying what the others need
@@ -114,6 +119,77 @@ def test_the_report_accounts_for_every_job_the_sweep_asked_for(tmp_path):
     assert skipped["status"] == "skipped" and "single-body" in skipped["why"]
     text = write_report(sweep, renders=False).read_text()
     assert "4 jobs asked for: 2 done, 1 skipped, 0 failed, 0 unfinished, 1 missing." in text
+
+
+def as_model(job: Path, folder: Path, model: str, shift: float = 0.0) -> None:
+    """A copy of a sweep job's run as another model's: the same scores, or every toss's position error shifted."""
+    shutil.copytree(job, folder)
+    for metrics in folder.rglob("metrics.json"):
+        document = json.loads(metrics.read_text())
+        document.update(model=model, pos_err=document["pos_err"] + shift)
+        metrics.write_text(json.dumps(document))
+        tosses = metrics.parent / "per_trajectory.csv"
+        with open(tosses, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        for row in rows:
+            row["pos_err"] = repr(float(row["pos_err"]) + shift)
+        with open(tosses, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+
+
+def intervals_in(text: str) -> list[tuple[float, float, float]]:
+    """Every 'mean [low–high]' the report prints, as numbers."""
+    found = re.findall(r"([0-9.]+) \[([0-9.]+)–([0-9.]+)\]", text)
+    return [(float(mean), float(low), float(high)) for mean, low, high in found]
+
+
+def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_path):
+    sweep = tmp_path / "sweep"
+    result = smoke_train_sweep(["model=mujoco_default", "variant=frictioncubes_0", "seed=0,1"], sweep, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    for job in sorted(sweep.glob("*model=mujoco_default*")):
+        as_model(job, sweep / job.name.replace("mujoco_default", "mujoco_twin"), "mujoco_twin")
+        as_model(job, sweep / job.name.replace("mujoco_default", "mujoco_worse"), "mujoco_worse", shift=1.0)
+    text = write_report(sweep, renders=False).read_text()
+    table = sweep / "results" / "smoke.csv"
+    assert "results/smoke.csv" in text
+    # a row per model and split over both seeds, in a fixed order, each metric with its interval and where it is from
+    with open(table, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    models = ("mujoco_default", "mujoco_twin", "mujoco_worse")
+    assert [(row["model"], row["split"], row["seeds"]) for row in rows] == [
+        (model, split, "0 1") for model in models for split in ("test", "val")
+    ]
+    metrics = ["pos_err", "rot_err_rad", "floor_penetration_m", "floor_penetration_true_m"]
+    metrics += ["interbody_penetration_m", "pairwise_collisions"]
+    assert list(rows[0]) == [
+        *["model", "dataset", "variant", "split", "budget", "noise_mm", "frame_stride", "seeds", "tosses"],
+        *[f"{metric}{suffix}" for metric in metrics for suffix in ("", "_low", "_high", "_interval")],
+        *["commit", "date", "wall_s"],
+    ]
+    for row in rows:
+        where = ("frictioncubes", "friction=0", "smoke", "4")
+        assert tuple(row[key] for key in ("dataset", "variant", "budget", "tosses")) == where
+        assert row["commit"] == "unknown"  # runs do not record it yet
+        for metric in ("pos_err", "rot_err_rad", "floor_penetration_m"):
+            low, mean, high = (float(row[f"{metric}{suffix}"]) for suffix in ("_low", "", "_high"))
+            assert low <= mean <= high and low < high, (row["model"], metric)
+            # mujoco_default scores the same at every seed: its seeds bound nothing, its tosses do
+            assert row[f"{metric}_interval"] == "tosses"
+    # every mean the tables print lies inside its interval (grid and every run)
+    printed = intervals_in(text)
+    assert len(printed) > 3 * 2 * 2 * 3 and all(low <= mean <= high for mean, low, high in printed)
+    # the twin cannot be told from the model it copies; the one a width worse on every toss can, in position
+    (grid_row,) = re.findall(r"^\| frictioncubes \| friction=0 \| smoke \|.*$", text, re.M)
+    ties = grid_row.split(" | ")[-1]
+    assert ties.startswith("pos: mujoco_default ≈ mujoco_twin; rot: ") and "mujoco_worse" not in ties.split(";")[0]
+    assert " †" in grid_row.split(" | ")[4]  # the twin, beside the bold best
+    # same runs, same bytes
+    first = {path: path.read_bytes() for path in (sweep / "results.md", table)}
+    write_report(sweep, renders=False)
+    assert {path: path.read_bytes() for path in first} == first
 
 
 def toss_run(model: str, running: list[int], pos_err: list[float]) -> Run:

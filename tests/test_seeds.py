@@ -1,6 +1,6 @@
-"""Seeds as an axis of the report: runs that differ only by seed are one cell (mean, min-max, n), models that the
+"""Seeds as an axis of the report: runs that differ only by seed are one cell (mean, 95% interval, n), models that the
 seeds cannot tell from the best are marked, Table 3 needs a change larger than the seeds' spread, the figures draw
-the spread, and a one-seed report reads as before."""
+the spread, and a one-seed report bootstraps over its tosses."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ import pytest
 from matplotlib.container import ErrorbarContainer
 
 from contactbench.evaluation import figures
-from contactbench.evaluation.report import collect, grid_markdown, importance_sentence, write_report
+from contactbench.evaluation.collect import collect
+from contactbench.evaluation.report import write_report
+from contactbench.evaluation.tables import grid_markdown, importance_sentence
 
 # Test position error per (model, friction) and seed 0, 1, 2; rotation error is 0.1 more, val position error 0.01 more.
 # sysid's mean moves by 0.053 from friction 0 to 1, more than 25% of its smallest mean (0.050), less than its seeds'
@@ -72,19 +74,22 @@ def section(text: str, title: str) -> str:
     return re.search(rf"^## {re.escape(title)}.*?\n(.*?)(?=^## )", text, re.S | re.M).group(1)
 
 
-def test_the_grid_shows_mean_and_range_over_seeds_and_marks_what_the_seeds_cannot_separate(tmp_path):
+def test_the_grid_shows_mean_and_interval_over_seeds_and_marks_what_the_seeds_cannot_separate(tmp_path):
     grid = grid_markdown(collect(write_runs(tmp_path, [0, 1, 2])))
-    # friction=0: sysid is best (mean 0.200) and mujoco_default's seeds (0.20-0.22) lie inside its 0.15-0.25
+    # sysid's seeds (0.15, 0.20, 0.25) spread wider than its tosses: Student t over the seeds' means, 0.200 +- 4.303 x
+    # 0.05 / sqrt(3), marked; mujoco_default's seeds are 0.01 apart, so its tosses' bootstrap is the wider interval
     assert (
-        "| frictioncubes | friction=0 | – | 0.210 [0.200–0.220] / 0.310 [0.300–0.320] (val 0.220, n=3) † "
-        "| **0.200 [0.150–0.250] / 0.300 [0.250–0.350] (val 0.210, n=3)** |"
+        "| frictioncubes | friction=0 | – | 0.210 [0.137–0.283] / 0.310 [0.202–0.419] (val 0.220, n=3) † "
+        "| **0.200 [0.076–0.324]ˢ / 0.300 [0.176–0.424]ˢ (val 0.210, n=3)** "
+        "| pos: mujoco_default ≈ sysid; rot: mujoco_default ≈ sysid |"
     ) in grid
-    # friction=1: mujoco_default's seeds (0.33-0.35) are all worse than sysid's worst (0.30): no mark
+    # friction=1: sysid is better on every toss, but three seeds 0.05 apart cannot tell 0.340 from 0.253
     assert (
-        "| frictioncubes | friction=1 | – | 0.340 [0.330–0.350] / 0.440 [0.430–0.450] (val 0.350, n=3) "
-        "| **0.253 [0.200–0.300] / 0.353 [0.300–0.400] (val 0.263, n=3)** |"
+        "| frictioncubes | friction=1 | – | 0.340 [0.221–0.459] / 0.440 [0.286–0.594] (val 0.350, n=3) † "
+        "| **0.253 [0.128–0.378]ˢ / 0.353 [0.228–0.478]ˢ (val 0.263, n=3)** "
+        "| pos: mujoco_default ≈ sysid; rot: mujoco_default ≈ sysid |"
     ) in grid
-    assert "† marks a model whose seeds' test position errors span a range that overlaps the best's" in grid
+    assert "† marks a model whose difference from it is not significant" in grid
 
 
 def test_table3_says_yes_only_for_a_change_larger_than_the_seeds_spread(tmp_path):
@@ -126,13 +131,17 @@ def test_the_figures_draw_the_seeds_spread_and_one_seed_as_before(tmp_path, monk
 
 
 @pytest.mark.parametrize("record_seed", [True, False], ids=["seed recorded", "older metrics.json without a seed"])
-def test_a_one_seed_report_reads_as_before(tmp_path, record_seed):
+def test_a_one_seed_report_bootstraps_over_tosses(tmp_path, record_seed):
     text = write_report(write_runs(tmp_path, [0], record_seed), renders=False).read_text()
-    assert section(text, "Test position error") == (
-        "\n| dataset | variant | budget | mujoco_default | sysid |\n"
-        "|---|---|---|---|---|\n"
-        "| frictioncubes | friction=0 | – | 0.200 / 0.300 (val 0.210) | 0.150 / 0.250 (val 0.160) |\n"
-        "| frictioncubes | friction=1 | – | 0.330 / 0.430 (val 0.340) | 0.300 / 0.400 (val 0.310) |\n\n"
+    # sysid is below mujoco_default on every toss, so their paired difference never covers 0, though their own
+    # intervals overlap
+    assert section(text, "Test position error").startswith(
+        "\n| dataset | variant | budget | mujoco_default | sysid | not significant (95%) |\n"
+        "|---|---|---|---|---|---|\n"
+        "| frictioncubes | friction=0 | – | 0.200 [0.130–0.270] / 0.300 [0.195–0.405] (val 0.210) "
+        "| **0.150 [0.098–0.202] / 0.250 [0.163–0.338] (val 0.160)** | none |\n"
+        "| frictioncubes | friction=1 | – | 0.330 [0.215–0.446] / 0.430 [0.280–0.581] (val 0.340) "
+        "| **0.300 [0.195–0.405] / 0.400 [0.260–0.540] (val 0.310)** | none |\n"
     )
     assert section(text, "Table 3, recomputed").startswith(
         "\n'Yes' when a method's mean test position error changes by more than 25% of its smallest value across the "
@@ -140,7 +149,7 @@ def test_a_one_seed_report_reads_as_before(tmp_path, record_seed):
         "| method | friction |\n|---|---|\n| mujoco_default | Yes |\n| sysid | Yes |\n"
     )
     seed = "0" if record_seed else "–"
-    assert f"| sysid | frictioncubes | friction=1 | test | {seed} | 4 | 0.3000 |" in text
+    assert f"| sysid | frictioncubes | friction=1 | test | {seed} | 4 | 0.3000 [0.1950–0.4050] |" in text
 
 
 def test_every_run_keeps_a_row_per_run_with_its_seed(tmp_path):
@@ -154,6 +163,6 @@ def test_every_run_keeps_a_row_per_run_with_its_seed(tmp_path):
     assert len(rows) == 2 * 2 * 2 * 3 and {seed for *_, seed in rows} == {"0", "1", "2"}
     # the best in bold reaches the HTML page as bold, not as asterisks
     page = (root / "results.html").read_text()
-    assert "<td><b>0.200 [0.150–0.250]" in page and "**" not in page
+    assert "<td><b>0.200 [0.076–0.324]ˢ" in page and "**" not in page
     for name in ("frictioncubes.png", "error_over_time_frictioncubes.png", "fig7c_lowest_vertex.png"):
         assert (root / "figures" / name).stat().st_size > 10_000

@@ -1,0 +1,90 @@
+"""results/<budget>.csv: one row a cell (a model on a variant, split and observation, over its seeds), each metric
+with its 95% interval, and the commit, date and wall time of the runs that made it."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+from contactbench import atomic
+from contactbench.evaluation.cells import METRICS, Cell
+
+UNKNOWN = "unknown"
+KEYS = ["model", "dataset", "variant", "split", "budget", "noise_mm", "frame_stride", "seeds", "tosses"]
+RECORDED = ["commit", "date", "wall_s"]
+HEADER = [
+    *KEYS,
+    *(f"{metric}{suffix}" for metric in METRICS for suffix in ("", "_low", "_high", "_interval")),
+    *RECORDED,
+]
+
+
+def _number(value: float | None) -> str:
+    # six significant digits: a last-bit difference between machines' sums does not change the file
+    return "" if value is None else f"{value:.6g}"
+
+
+def _recorded(row: dict, key: str):
+    """What the run recorded about itself: in its metrics.json, else its fitted.json; None where neither says."""
+    if row.get(key) is not None:
+        return row[key]
+    fitted = row["_run"] / "fitted.json" if row.get("_run") is not None else None
+    if fitted is not None and fitted.is_file():
+        return json.loads(fitted.read_text()).get(key)
+    return None
+
+
+def _provenance(cell: Cell) -> dict[str, str]:
+    """The cell's commits (each once), its latest date, and its runs' total wall time; 'unknown' where a run did
+    not record it."""
+    runs = [cell.runs[seed] for seed in cell.seeds]
+    commits = [_recorded(row, "commit") for row in runs]
+    dates = [_recorded(row, "date") for row in runs]
+    walls = [_recorded(row, "wall_s") for row in runs]
+    return {
+        "commit": UNKNOWN if None in commits else " ".join(sorted({str(commit) for commit in commits})),
+        "date": UNKNOWN if None in dates else max(str(date) for date in dates),
+        "wall_s": UNKNOWN if None in walls else f"{sum(float(wall) for wall in walls):.1f}",
+    }
+
+
+def row_of(cell: Cell) -> dict[str, str]:
+    row = {
+        "model": cell.model,
+        "dataset": cell.dataset,
+        "variant": cell.variant,
+        "split": cell.split,
+        "budget": cell.budget or UNKNOWN,
+        "noise_mm": f"{cell.noise_mm:g}",
+        "frame_stride": str(cell.frame_stride),
+        "seeds": " ".join(UNKNOWN if seed is None else str(seed) for seed in cell.seeds),
+        "tosses": str(cell.n_trajectories),
+    }
+    for metric in METRICS:
+        interval = cell.interval(metric)
+        row[metric] = _number(cell.mean(metric))
+        row[f"{metric}_low"] = _number(None if interval is None else interval.low)
+        row[f"{metric}_high"] = _number(None if interval is None else interval.high)
+        row[f"{metric}_interval"] = "" if interval is None else interval.over
+    return {**row, **_provenance(cell)}
+
+
+def csv_text(cells: list[Cell]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=HEADER, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(row_of(cell) for cell in cells)
+    return buffer.getvalue()
+
+
+def write_results(cells: list[Cell], folder: Path) -> list[Path]:
+    """folder/<budget>.csv for every budget among the cells (cells in their given order); the files written."""
+    budgets = sorted({cell.budget or UNKNOWN for cell in cells})
+    written = []
+    for budget in budgets:
+        path = Path(folder) / f"{budget}.csv"
+        atomic.write_text(path, csv_text([cell for cell in cells if (cell.budget or UNKNOWN) == budget]))
+        written.append(path)
+    return written
