@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from test_diagnose import CUBE
 
-from contactbench.diagnosis import open_world, predictable
+from contactbench.diagnosis import open_world, predictable, predictable_correction, predictable_states
 from contactbench.diagnosis.fitting import ResidualFit
 from contactbench.diagnosis.phases import FREE, PHASES, REST, ROLLING, SLIDING
 from contactbench.diagnosis.segments import SegmentSimulator
@@ -34,19 +34,21 @@ def test_the_correction_integrates_accelerations_as_the_open_world_does():
     features = rng.normal(size=(3, LENGTH, 1, len(open_world.FEATURES)))
     phases = np.full((3, LENGTH, 1), FREE)
     dictionary = open_world.integrate(features, phases, DT, np.array([2.0]))  # half width 1: no rescaling
-    integration = predictable.integration_matrix(LENGTH, DT)
+    integration = open_world.integration_matrix(LENGTH, DT)
     accelerations = np.repeat(features[..., 3:4], 6, axis=-1)  # v_z as the acceleration of every output
     np.testing.assert_allclose(
-        predictable.integrate(integration, accelerations)[..., 0], dictionary.linear[..., FREE, 3], atol=1e-15
+        predictable_correction.integrate(integration, accelerations)[..., 0],
+        dictionary.linear[..., FREE, 3],
+        atol=1e-15,
     )
     # a constant acceleration a moves frame j by a dt^2 j (j + 1) / 2 (semi-implicit Euler on the frame grid)
     j = np.arange(1, LENGTH + 1)
     np.testing.assert_allclose(integration.sum(axis=1), DT**2 * j * (j + 1) / 2)
 
 
-def random_states(rng: np.random.Generator, count: int = 40) -> predictable.States:
+def random_states(rng: np.random.Generator, count: int = 40) -> predictable_states.States:
     shape = (count, LENGTH, 1)
-    return predictable.States(
+    return predictable_states.States(
         velocity=rng.normal(size=(*shape, 3)),
         spin=rng.normal(size=(*shape, 3)),
         slip=rng.normal(size=(*shape, 2)),
@@ -90,29 +92,29 @@ class _Simulator:
         self.segments = SimpleNamespace(trajectory=trajectory, length=LENGTH)
 
 
-def planted_inputs(rng: np.random.Generator, missing) -> predictable.Inputs:
+def planted_inputs(rng: np.random.Generator, missing) -> predictable_states.Inputs:
     """Residuals of a simulator that misses the accelerations `missing(states)` [M, L, K, 6] (residual units per s^2),
     plus noise, on 30 tosses of 4 segments."""
     states = random_states(rng, count=120)
     noise = 2e-4 * rng.normal(size=(*states.phase.shape, 6))
-    residuals = -predictable.integrate(predictable.integration_matrix(LENGTH, DT), missing(states)) + noise
+    residuals = -predictable_correction.integrate(open_world.integration_matrix(LENGTH, DT), missing(states)) + noise
     fit = ResidualFit(_Simulator(np.repeat(np.arange(30), 4)), scale=1e-3)
-    return predictable.Inputs(residuals, states, states.features(), np.ones(120, bool), fit, 30)
+    return predictable_states.Inputs(residuals, states, states.features(), np.ones(120, bool), fit, 30)
 
 
-def sliding(states: predictable.States, x: np.ndarray, y: np.ndarray | float = 0.0) -> np.ndarray:
+def sliding(states: predictable_states.States, x: np.ndarray, y: np.ndarray | float = 0.0) -> np.ndarray:
     """Accelerations (x, y) along the floor in the sliding states, nothing else."""
     out = np.zeros((*states.phase.shape, 6))
     out[..., 0], out[..., 1] = x, y
     return out * (states.phase == SLIDING)[..., None]
 
 
-def learned(missing, seed: int = 2) -> tuple[predictable.Correction, predictable.Inputs, dict]:
+def learned(missing, seed: int = 2) -> tuple[predictable_correction.Correction, predictable_states.Inputs, dict]:
     """The correction fitted to planted train residuals, and judged on val residuals planted the same way."""
     rng = np.random.default_rng(seed)
     train, val = planted_inputs(rng, missing), planted_inputs(rng, missing)
-    short = predictable.Settings(max_steps=250)  # a planted force is learned to >90% by then (600: 95%)
-    correction, _ = predictable.train(train, DT, short)
+    short = predictable_correction.Settings(max_steps=250)  # a planted force is learned to >90% by then (600: 95%)
+    correction, _ = predictable_correction.train(train, DT, short)
     return correction, val, predictable.judged(correction, val, 500, 0.95, short)
 
 
@@ -176,7 +178,7 @@ def test_a_concealed_floor_bowl_passes_in_contact_on_the_place_on_the_floor(bowl
 def test_a_null_does_not_pass_and_the_check_is_deterministic_and_leaves_the_pipeline_draws_alone(null):
     steps, base, values = null
     drawn = steps.rng.bit_generator.state
-    quick = predictable.Settings(max_steps=60, permutations=1)
+    quick = predictable_correction.Settings(max_steps=60, permutations=1)
     record = predictable.check(steps, base, values, quick)
     assert steps.rng.bit_generator.state == drawn
     assert predictable.check(steps, base, values, quick) == record
