@@ -70,7 +70,7 @@ def training_samples_per_second(
     simulator = module.simulator
     batch = next(loader).to(module.device)[:, :-1]
     if rigid:
-        vertices = simulator.vertices(batch.double())
+        vertices = simulator.bodies.vertices(batch.double())
         nodes = simulator.node_features_double(vertices)
         current = vertices[:, -1].float()
     else:

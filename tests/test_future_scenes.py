@@ -274,7 +274,7 @@ def test_the_gnn_closes_a_hinge_exactly_and_reads_the_terrain(elbow, ramp):
     broken[:, 1, 3:] = torch.as_tensor(
         rotations.multiply(rotations.from_axis_angle([1.0, 0, 0], 0.1), broken[:, 1, 3:].numpy())
     )
-    kept = simulator.keep_joints(broken).numpy()
+    kept = simulator.bodies.keep_joints(broken).numpy()
     gaps, angles = metrics.joint_errors(kept, elbow.joints)
     assert gaps.max() < 1e-12 and angles.max() < 1e-12
     centre = lambda p: p[:, :, :3].mean(axis=1)  # noqa: E731 (equal masses)
@@ -313,7 +313,9 @@ def test_the_rigid_gnn_swings_the_elbow_as_pybullet_does_with_its_joint_reaction
     frames = poses[:, :history]
     for _ in range(steps):  # integrated without keep_joints: the hinge is the reaction's alone
         window = frames[:, -history:]
-        frames = torch.cat([frames, simulator.integrate(window, *simulator.accelerations(window))[:, None]], dim=1)
+        frames = torch.cat(
+            [frames, simulator.bodies.integrate(window, *simulator.accelerations(window))[:, None]], dim=1
+        )
     predicted, recorded = frames[:, history:].detach().numpy(), poses[:, history : history + steps].numpy()
     error = np.abs(predicted[..., :3] - recorded[..., :3]).max()
     assert error < 5e-5
@@ -323,9 +325,9 @@ def test_the_rigid_gnn_swings_the_elbow_as_pybullet_does_with_its_joint_reaction
     centre = np.einsum("k,ntkd->ntd", masses, frames[:, history - 2 :, :, :3].detach().numpy()) / masses.sum()
     falling = np.diff(centre, n=2, axis=1) / elbow.dt**2
     np.testing.assert_allclose(falling, np.broadcast_to(elbow.gravity, falling.shape), atol=1e-8)
-    simulator.joints = (dataclasses.replace(elbow.joints[0], damping=0.0),)
+    simulator.bodies.joints = (dataclasses.replace(elbow.joints[0], damping=0.0),)
     window = poses[:, :history]
-    undamped = simulator.integrate(window, *simulator.accelerations(window)).detach().numpy()
+    undamped = simulator.bodies.integrate(window, *simulator.accelerations(window)).detach().numpy()
     assert (
         np.abs(undamped[..., :3] - recorded[:, 0, :, :3]).max() > 10 * np.abs(predicted - recorded)[:, 0, :, :3].max()
     )

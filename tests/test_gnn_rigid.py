@@ -77,17 +77,17 @@ def test_the_rigid_fit_recovers_a_rigid_acceleration_field_exactly():
     recordings = falling_cubes(n_trajectories=2, n_bodies=2)
     simulator = rigid_simulator(recordings)
     poses = torch.as_tensor(recordings.split("train").poses[:, 5])
-    vertices = simulator.vertices(poses)
+    vertices = simulator.bodies.vertices(poses)
     rng = np.random.default_rng(1)
     linear, angular = torch.as_tensor(rng.normal(size=(2, 2, 3))), torch.as_tensor(rng.normal(size=(2, 2, 3)))
     offsets = vertices - poses[:, simulator.node_body, :3]
     field = linear[:, simulator.node_body] + torch.linalg.cross(angular[:, simulator.node_body], offsets, dim=-1)
-    fitted_linear, fitted_angular = simulator.rigid_fit(field, vertices, poses)
+    fitted_linear, fitted_angular = simulator.bodies.rigid_fit(field, vertices, poses)
     torch.testing.assert_close(fitted_linear, linear, atol=1e-10, rtol=0)
     torch.testing.assert_close(fitted_angular, angular, atol=1e-10, rtol=0)
     # a field no rigid motion makes (squeezing a body) has no rigid part
-    squeeze = -(vertices - simulator.per_body_sum(vertices)[:, simulator.node_body] / 8)
-    for part in simulator.rigid_fit(squeeze, vertices, poses):
+    squeeze = -(vertices - simulator.bodies.per_body_sum(vertices)[:, simulator.node_body] / 8)
+    for part in simulator.bodies.rigid_fit(squeeze, vertices, poses):
         torch.testing.assert_close(part, torch.zeros_like(part), atol=1e-10, rtol=0)
 
 
@@ -100,14 +100,14 @@ def test_with_solid_inertia_vertex_outputs_act_as_forces_on_the_solid_body():
     np.testing.assert_allclose(inertia[0], np.eye(3) * width**2 / 6, atol=1e-12)
     solid, least_squares = rigid_simulator(recordings, solid_inertia=inertia), rigid_simulator(recordings)
     poses = torch.as_tensor(recordings.split("train").poses[:, 5])
-    vertices = solid.vertices(poses)
+    vertices = solid.bodies.vertices(poses)
     push = torch.zeros_like(vertices)
     push[0, 0] = torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64)
     corner = vertices[0, 0] - poses[0, 0, :3]
-    linear, angular = solid.rigid_fit(push, vertices, poses)
+    linear, angular = solid.bodies.rigid_fit(push, vertices, poses)
     torch.testing.assert_close(angular[0, 0], torch.linalg.cross(corner, push[0, 0], dim=-1) / (8 * width**2 / 6))
     torch.testing.assert_close(linear[0, 0], push[0, 0] / 8)  # the cube's vertex centroid is its centre of mass
-    torch.testing.assert_close(least_squares.rigid_fit(push, vertices, poses)[1] * 3, angular)
+    torch.testing.assert_close(least_squares.bodies.rigid_fit(push, vertices, poses)[1] * 3, angular)
 
 
 def test_free_flight_is_exact_whatever_the_network_says():
@@ -133,8 +133,8 @@ def test_rollouts_in_contact_keep_every_body_rigid():
     history = torch.as_tensor(lowered[:, :4])
     predicted = simulator.rollout(history, 20)
     assert not torch.allclose(predicted[..., :3], torch.as_tensor(lowered[:, 4:24, :, :3]), atol=1e-3)  # it did push
-    vertices = simulator.vertices(predicted)
-    rest = simulator.rest_vertices_double
+    vertices = simulator.bodies.vertices(predicted)
+    rest = simulator.bodies.rest_vertices_double
     for nodes in simulator.body_slices:
         torch.testing.assert_close(
             torch.cdist(vertices[..., nodes, :], vertices[..., nodes, :]),
@@ -158,11 +158,13 @@ def test_separation_pushes_overlapping_bodies_apart_and_leaves_the_rest_alone():
     meshes = [recordings.body_mesh(k) for k in range(3)]
     before = metrics.interbody_penetration(poses, meshes).max(axis=(-2, -1))
     assert np.all(before > 0.01)
-    separated = simulator.separate(torch.as_tensor(poses)).numpy()
+    separated = simulator.bodies.separate(torch.as_tensor(poses)).numpy()
     assert np.all(metrics.interbody_penetration(separated, meshes).max(axis=(-2, -1)) < 1e-4)
     np.testing.assert_array_equal(separated[..., 3:], poses[..., 3:])
     np.testing.assert_array_equal(separated[:, 2], poses[:, 2])
-    np.testing.assert_allclose(simulator.separate(torch.as_tensor(separated)).numpy(), separated, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        simulator.bodies.separate(torch.as_tensor(separated)).numpy(), separated, rtol=0, atol=1e-12
+    )
 
 
 def test_training_steps_reduce_the_loss_in_contact():
@@ -251,7 +253,7 @@ def test_collision_edges_carry_the_receivers_depth_inside_the_senders_body():
     # body 1 overlaps body 0 by 0.01 m along x, offset 0.02 m in y and z: one corner of it, at (0.04, -0.03, 0.97),
     # is 0.01 m inside body 0's face x = 0.05 and farther from every other face
     poses = torch.as_tensor([[[0, 0, 1, *identity], [width - 0.01, 0.02, 1.02, *identity]]], dtype=torch.float64)
-    current = simulator.vertices(poses).float()
+    current = simulator.bodies.vertices(poses).float()
     edge_index, n_mesh = build_edges(current, simulator.node_body, simulator.mesh_edges, simulator.radius)
     features = simulator.edge_features(current, edge_index, n_mesh)
     assert features.shape == (edge_index.shape[1], 13)
