@@ -21,8 +21,9 @@ from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 from contactbench.scene import FORMAT, SCENE_VERSION, Scene
 from contactbench.sim.articulation import Articulation
-from contactbench.sim.bullet_engine import BulletEngine, BulletWorld
+from contactbench.sim.bullet_engine import BulletEngine
 from contactbench.sim.bullet_scene import BulletParameters
+from contactbench.sim.bullet_tosses import BulletWorld
 from contactbench.sim.engines import engine
 
 RIGID = BulletParameters(object_friction=(0.5,), restitution=(0.0,))
