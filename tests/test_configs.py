@@ -75,15 +75,15 @@ def test_every_group_option_is_covered():
 
 
 @pytest.mark.parametrize("experiment", options("experiment"))
-def test_an_experiment_sweeps_over_options_that_exist(experiment: str):
+def test_an_experiment_sweeps_over_options_that_exist(experiment: str, hydra_configs):
     params = OmegaConf.load(CONFIG_DIR / "experiment" / f"{experiment}.yaml").hydra.sweeper.params
     assert {"model", "variant"} <= set(params)
-    train = OmegaConf.load(CONFIG_DIR / "train.yaml")
+    train = compose(config_name="train")
     for key, values in params.items():
         if key in ("model", "variant"):  # config groups: every value an option
             chosen = options(key) if values == "glob(*)" else values.split(",")
             assert chosen and set(chosen) <= set(options(key)), (experiment, key, values)
-        else:  # a setting train.yaml has
+        else:  # a setting train.py's config has
             assert OmegaConf.select(train, key) is not None, (experiment, key)
 
 

@@ -205,7 +205,14 @@ def _not_key_value(task: str, words: list[str], overrides: list[str], unknown: l
 def _top_level_keys(task: str) -> set[str]:
     """What a command line may set without a dot: the config groups, the entry point's own keys and the datasets'."""
     groups = {path.name for path in CONFIG_DIR.iterdir() if path.is_dir()}
-    own = {str(key) for key in OmegaConf.load(CONFIG_DIR / f"{task}.yaml") if key != "defaults"}
+    entry = OmegaConf.load(CONFIG_DIR / f"{task}.yaml")
+    own = {str(key) for key in entry if key != "defaults"}
+    for item in OmegaConf.to_container(entry, resolve=False).get("defaults", []):
+        # a group option of the entry's own that sets top-level keys (conf/protocol/: # @package _global_)
+        for group, option in item.items() if isinstance(item, dict) else []:
+            path = CONFIG_DIR / str(group) / f"{option}.yaml"
+            if path.is_file() and path.read_text().startswith("# @package _global_"):
+                own |= {str(key) for key in OmegaConf.load(path) if key != "defaults"}
     return groups | own | {key for keys in helptext.dataset_settings().values() for key in keys}
 
 
