@@ -29,8 +29,9 @@ from torch import nn
 from contactbench.config import REPO_ROOT
 from contactbench.kinematics import world_vertices
 from contactbench.models.residual import correction
+from contactbench.models.residual.contact_model import ResidualContactModel
 from contactbench.models.residual.correction import Bodies
-from contactbench.models.residual.module import ResidualContactModel, transitions
+from contactbench.models.residual.windows import transitions
 from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.recordings import read_recordings

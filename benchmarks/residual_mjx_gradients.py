@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from contactbench.models.residual.module import ResidualModule, recorded_windows, segment_starts
+from contactbench.models.residual.module import ResidualModule
 from contactbench.models.residual.through_mjx import MjxResidualWindows
+from contactbench.models.residual.windows import recorded_windows, segment_starts
 from contactbench.recordings import read_recordings
 
 CUBE_DATA = Path(__file__).resolve().parents[1] / "assets" / "contactnets_cube"

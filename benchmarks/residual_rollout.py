@@ -14,7 +14,8 @@ from metrics_speed import best_time  # a sibling script: python benchmarks/... p
 
 from contactbench.config import REPO_ROOT
 from contactbench.models.analytical import preset_parameters
-from contactbench.models.residual.module import ResidualContactModel, ResidualModule
+from contactbench.models.residual.contact_model import ResidualContactModel
+from contactbench.models.residual.module import ResidualModule
 from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 from contactbench.sim.rollout import rollout_context

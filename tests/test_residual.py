@@ -15,8 +15,9 @@ from contactbench import rotations, runs
 from contactbench.config import REPO_ROOT
 from contactbench.kinematics import world_vertices
 from contactbench.models.residual import correction
+from contactbench.models.residual.contact_model import ResidualContactModel
 from contactbench.models.residual.correction import Bodies
-from contactbench.models.residual.module import ResidualContactModel, ResidualModule
+from contactbench.models.residual.module import ResidualModule
 from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities

@@ -13,8 +13,9 @@ from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.models.residual import correction
 from contactbench.models.residual.correction import Bodies
-from contactbench.models.residual.module import ResidualModule, recorded_windows
+from contactbench.models.residual.module import ResidualModule
 from contactbench.models.residual.through_mjx import JaxCorrection, MjxResidualWindows
+from contactbench.models.residual.windows import recorded_windows
 from contactbench.recordings import read_recordings
 from contactbench.sim.mjx import import_mjx
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
@@ -50,127 +50,22 @@ from torch.utils.data import DataLoader
 from contactbench import rotations
 from contactbench.config import generations
 from contactbench.errors import ContactbenchError, require_positive_integers
-from contactbench.kinematics import estimate_velocities
-from contactbench.models.base import ContactModel, ContactModule
+from contactbench.models.base import ContactModule
 from contactbench.models.residual import correction
+from contactbench.models.residual.contact_model import ResidualContactModel
 from contactbench.models.residual.correction import Bodies, Predictor
 from contactbench.models.residual.through_mjx import MjxResidualWindows
+from contactbench.models.residual.windows import recorded_windows, segment_starts, transitions
 from contactbench.models.selection import rollout_errors
 from contactbench.models.sysid.module import NevergradSearch, SysIDDataModule, SysIDModule
 from contactbench.models.sysid.search_space import SearchSpace
-from contactbench.protocol import Context
-from contactbench.scene import Recordings, Scene, Split
-from contactbench.sim.mujoco_scene import ContactParameters, body_frame_velocities, pack_state, scene_xml
+from contactbench.scene import Recordings
+from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import MujocoRollouts
 
 log = logging.getLogger(__name__)
 GRADIENTS = ("linearised", "mjx")  # how stage two differentiates the rollout: MuJoCo's finite differences, or MJX
 STD_FLOOR = 1e-6  # a constant feature (a single body's neighbour) or target stays finite once standardised
-
-
-class ResidualContactModel(ContactModel):
-    """Rollout: MuJoCo with the identified parameters steps all trajectories one frame in one native call, the
-    learned correction is applied to every body (projected: see `correction`), MuJoCo steps on."""
-
-    name = "residual"
-
-    def __init__(
-        self,
-        parameters: ContactParameters,
-        predict: Predictor | None,
-        contact_margin: float,
-        substeps: int = 1,
-        nthread: int | None = None,
-    ):
-        self.parameters = parameters
-        self.predict = predict
-        self.contact_margin = float(contact_margin)
-        self.substeps = substeps
-        self.nthread = nthread
-
-    def scene_files(self, dataset: Recordings) -> dict[str, str]:
-        return {"scene.xml": scene_xml(dataset, self.parameters, self.substeps)}
-
-    def rollout(self, scene: Scene, context: Context) -> np.ndarray:
-        simulator = MujocoRollouts(scene, self.nthread, self.substeps)
-        bodies = Bodies.of(scene)
-        n, n_bodies = len(context.poses), scene.n_bodies
-        qpos, qvel = pack_state(context.poses[:, -1], context.velocities[:, -1])
-        qpos, qvel = qpos.reshape(n, n_bodies, 7), qvel.reshape(n, n_bodies, 6)
-        poses = np.empty((n, context.horizon, n_bodies, 7))
-        poses[:, : context.n_context] = context.poses
-        for frame in range(context.n_context, context.horizon):
-            qpos, qvel = self.step(simulator, bodies, qpos, qvel)
-            poses[:, frame] = qpos
-        return poses
-
-    def step(
-        self, simulator: MujocoRollouts, bodies: Bodies, qpos: np.ndarray, qvel: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """States [N, K, 7] / [N, K, 6] one frame later."""
-        n, n_bodies = qpos.shape[:2]
-        qpos1, qvel1, _ = simulator.step(self.parameters, qpos.reshape(n, -1), qvel.reshape(n, -1))
-        qpos1, qvel1 = qpos1.reshape(n, n_bodies, 7), qvel1.reshape(n, n_bodies, 6)
-        if self.predict is None:
-            return qpos1, qvel1
-        inputs = correction.features(bodies, qpos, qvel, qpos1, qvel1)
-        change = self.predict(inputs.reshape(n * n_bodies, -1)).reshape(n, n_bodies, 6)
-        return correction.corrected(bodies, qpos, qvel, qpos1, qvel1, change, self.contact_margin)
-
-
-def recorded_states(
-    split: Split, trajectory: np.ndarray, frame: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """MuJoCo states qpos [M, K, 7], qvel [M, K, 6] of recorded frames (velocities as recorded, else backward
-    differences)."""
-    velocities = split.velocities if split.velocities is not None else estimate_velocities(split.poses, dt)
-    poses = split.poses[trajectory, frame]
-    qpos = np.concatenate([poses[..., :3], rotations.normalize(poses[..., 3:])], axis=-1)
-    return qpos, body_frame_velocities(qpos, velocities[trajectory, frame])
-
-
-def recorded_windows(
-    split: Split, segments: np.ndarray, unroll: int, dt: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Windows [(trajectory, first frame)] of a split as MuJoCo states at their first frame (qpos [M, K, 7], qvel
-    [M, K, 6]), the recorded poses of the `unroll` frames after it [M, unroll, K, 7] (past a toss's end, its last
-    frame) and which of those frames the toss has [M, unroll]."""
-    trajectory, first = segments[:, 0], segments[:, 1]
-    qpos, qvel = recorded_states(split, trajectory, first, dt)
-    frames = first[:, None] + 1 + np.arange(unroll)
-    lengths = split.lengths[trajectory][:, None]
-    truth = split.poses[trajectory[:, None], np.minimum(frames, lengths - 1)]
-    return qpos, qvel, truth, frames < lengths
-
-
-def transitions(
-    split: Split,
-    bodies: Bodies,
-    simulator: MujocoRollouts,
-    parameters: ContactParameters,
-    selected: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Features [N, F] and one-step correction targets [N, 6] of every body in every transition t -> t + 1 of a split,
-    from the recorded states: what MuJoCo gets wrong per step, for the scale of inputs and outputs. `selected` keeps
-    some bodies only: from the recorded states before the step (qpos [M, K, 7], qvel [M, K, 6]) to a mask [M, K]."""
-    trajectory, frame = np.nonzero(np.arange(split.poses.shape[1] - 1)[None, :] < split.lengths[:, None] - 1)
-    qpos0, qvel0 = recorded_states(split, trajectory, frame, bodies.dt)
-    m, n_bodies = qpos0.shape[:2]
-    qpos1, qvel1, diverged = simulator.step(parameters, qpos0.reshape(m, -1), qvel0.reshape(m, -1))
-    qpos1, qvel1 = qpos1.reshape(m, n_bodies, 7), qvel1.reshape(m, n_bodies, 6)
-    keep = ~diverged
-    qpos0, qvel0, qpos1, qvel1 = qpos0[keep], qvel0[keep], qpos1[keep], qvel1[keep]
-    chosen = np.ones(qpos0.shape[:2], dtype=bool) if selected is None else selected(qpos0, qvel0)
-    inputs = correction.features(bodies, qpos0, qvel0, qpos1, qvel1)
-    recorded_next = split.poses[trajectory, frame + 1][keep]
-    wanted = correction.targets(qpos0, qpos1, qvel1, recorded_next, bodies.dt)
-    return inputs[chosen], wanted[chosen]
-
-
-def segment_starts(split: Split) -> np.ndarray:
-    """[S, 2] (trajectory, first frame) of the windows a split offers: one from every frame that has a next one (a
-    window running past its toss's end is scored up to the end)."""
-    return np.argwhere(np.arange(split.poses.shape[1])[None, :] + 1 < split.lengths[:, None])
 
 
 class ResidualDataModule(pl.LightningDataModule):
