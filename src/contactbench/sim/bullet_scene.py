@@ -21,12 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contactbench import rotations
 from contactbench.errors import ContactbenchError
 from contactbench.scene import Scene
 from contactbench.sim.articulation import Articulation
 from contactbench.sim.bullet_world import BulletSettings
-from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertials
+from contactbench.sim.effects import NO_EFFECTS, SceneEffects
 from contactbench.values import freeze_numbers
 
 # the generator's engine settings: restitution threshold, floor friction and restitution
@@ -67,29 +66,6 @@ class BulletParameters:
                 f"PyBullet contact stiffness must be > 0 and damping >= 0, finite, got {self.contact_stiffness}, "
                 f"{self.contact_damping}"
             )
-
-
-def inertial_frames(scene: Scene, effects: SceneEffects = NO_EFFECTS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per body: centre of mass [K, 3] and principal axes [K, 4] (w-first) in the mesh frame, principal moments [K, 3],
-    with `effects`' offset centre of mass and scaled inertia.
-
-    Within 1e-9 of the origin and of diagonal (a generated scene's mesh frame) they are taken as exactly so, so that a
-    generated dataset's world is the generator's to the last bit."""
-    coms, axes, moments = [], [], []
-    centres, inertias = inertials(scene, effects)
-    for k in range(scene.n_bodies):
-        com, inertia = centres[k], inertias[k]
-        width = scene.body_mesh(k).width
-        com = np.where(np.abs(com) > 1e-9 * width, com, 0.0)
-        if np.abs(inertia - np.diag(np.diag(inertia))).max() <= 1e-9 * np.trace(inertia):
-            principal, rotation = np.diag(inertia).copy(), np.eye(3)
-        else:
-            principal, rotation = np.linalg.eigh(inertia)
-            rotation[:, 2] *= np.linalg.det(rotation)  # a proper rotation
-        coms.append(com)
-        axes.append(rotations.from_matrix(rotation))
-        moments.append(principal)
-    return np.array(coms), np.array(axes), np.array(moments)
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,9 @@ from contactbench import rotations
 from contactbench.meshes import obj_text
 from contactbench.scene import Joint, Scene
 from contactbench.sim.articulation import articulated
-from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, inertial_frames, link_origins, trees
+from contactbench.sim.bullet_scene import TABLE_2A, BulletParameters, link_origins, trees
 from contactbench.sim.bullet_world import BODY_DYNAMICS_OVERRIDES
+from contactbench.sim.effects import inertial_frames
 
 
 def _numbers(values) -> str:
