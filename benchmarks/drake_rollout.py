@@ -17,7 +17,8 @@ from pydrake.systems.analysis import Simulator
 
 from contactbench.config import REPO_ROOT
 from contactbench.recordings import read_recordings
-from contactbench.sim.drake_engine import DrakeEngine, add_scene, new_plant
+from contactbench.sim.drake_engine import DrakeEngine, new_plant
+from contactbench.sim.drake_plant import add_scene
 from contactbench.sim.drake_scene import DrakeParameters
 
 

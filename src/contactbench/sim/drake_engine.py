@@ -69,56 +69,28 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
-from pydrake.common.value import AbstractValue
-from pydrake.geometry import (
-    AddCompliantHydroelasticProperties,
-    AddContactMaterial,
-    AddRigidHydroelasticProperties,
-    Box,
-    CollisionFilterDeclaration,
-    Convex,
-    GeometrySet,
-    HalfSpace,
-    ProximityProperties,
-    SceneGraph,
-    Sphere,
-)
-from pydrake.math import RigidTransform
-from pydrake.multibody.math import SpatialForce
+from pydrake.geometry import SceneGraph
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import (
-    AddMultibodyPlantSceneGraph,
-    ContactModel,
-    CoulombFriction,
-    ExternallyAppliedSpatialForce,
-    MultibodyPlant,
-)
-from pydrake.multibody.tree import FixedOffsetFrame, RevoluteJoint, RotationalInertia, SpatialInertia
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, ContactModel, MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
-from contactbench import rotations
 from contactbench.errors import ContactbenchError, NotApplicable
 from contactbench.kinematics import hinge_child, hinge_coordinates
 from contactbench.meshes import obj_text
 from contactbench.rotations import normalize
 from contactbench.scene import Scene
 from contactbench.sim.articulation import articulated
+from contactbench.sim.drake_plant import add_fluid_drag, add_scene
 from contactbench.sim.drake_scene import (
     DISCRETE_CONTACT_APPROXIMATION,
     DRAKE_DEFAULT_DISSIPATION,
     DRAKE_DEFAULT_FRICTION,
     DRAKE_DEFAULT_POINT_STIFFNESS,
-    FLOOR_POINT_STIFFNESS,
-    HYDROELASTIC_RESOLUTION_HINT,
-    VERTEX_RADIUS,
     DrakeParameters,
-    box_extents,
-    hull_vertices,
 )
 from contactbench.sim.drake_sdf import mesh_file_name, scene_sdf, sdf_joint_frictions
-from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertial_frames, inertials
+from contactbench.sim.effects import SceneEffects
 from contactbench.sim.engines import Dimension, Engine
 from contactbench.sim.stepped import SteppedRollouts, World
 
@@ -130,36 +102,6 @@ logging.getLogger("drake").addFilter(lambda record: not record.getMessage().star
 SIMULATIONS_KEPT = 4  # diagrams a world keeps, least recently used first out (a search asks a generation at a time)
 DIVERGED = 1e4  # m or m/s (rad/s): a toss state beyond this has blown up; its frames from there on are NaN
 FALLBACK_REFINEMENTS = (4, 16)  # steps a frame, in turn, where the solver failed at the recordings' step
-
-
-def body_properties(parameters: DrakeParameters, k: int) -> ProximityProperties:
-    """Body k's proximity properties."""
-    properties = ProximityProperties()
-    friction = parameters.object_friction[k]
-    AddContactMaterial(
-        parameters.hunt_crossley_dissipation,
-        parameters.point_stiffness,
-        CoulombFriction(friction, friction),
-        properties,
-    )
-    if parameters.contact_model == "hydroelastic":
-        AddCompliantHydroelasticProperties(HYDROELASTIC_RESOLUTION_HINT, parameters.hydroelastic_modulus, properties)
-    return properties
-
-
-def floor_properties(parameters: DrakeParameters) -> ProximityProperties:
-    """The floor's proximity properties: stiff and rigid, so that a floor contact has the body's values."""
-    properties = ProximityProperties()
-    friction = parameters.floor_friction
-    AddContactMaterial(
-        parameters.hunt_crossley_dissipation,
-        FLOOR_POINT_STIFFNESS,
-        CoulombFriction(friction, friction),
-        properties,
-    )
-    if parameters.contact_model == "hydroelastic":
-        AddRigidHydroelasticProperties(properties)
-    return properties
 
 
 def new_plant(scene: Scene, substeps: int, contact_model: str) -> tuple[DiagramBuilder, MultibodyPlant, SceneGraph]:
@@ -178,81 +120,6 @@ def new_plant(scene: Scene, substeps: int, contact_model: str) -> tuple[DiagramB
     # vertex spheres off its hull, which is all the plant's filter of adjacent bodies would do besides.
     plant.set_adjacent_bodies_collision_filters(False)
     return builder, plant, scene_graph
-
-
-def spatial_inertia(scene: Scene, k: int, effects: SceneEffects = NO_EFFECTS) -> SpatialInertia:
-    centres, inertias = inertials(scene, effects)
-    com, inertia = centres[k], inertias[k]
-    rotational = RotationalInertia(
-        inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]
-    )
-    return SpatialInertia.MakeFromCentralInertia(scene.bodies[k].mass, com, rotational)
-
-
-def hull_shape(scene: Scene, k: int, contact_model: str) -> tuple[RigidTransform, Box | Convex]:
-    """Body k's collision shape and its pose in the body frame: in point contact a Box where the hull is one (every
-    cube here), else the Convex hull. In multi-body tosses Drake 1.51.1 crashed (a segmentation fault, at random after
-    5-60 tosses) with Convex hulls touching each other in 1 of 4 runs of 60 tosses even from fresh contexts (see
-    _Simulation), with boxes in 1 of 7."""
-    box = box_extents(scene, k) if contact_model == "point" else None
-    if box is not None:
-        return RigidTransform(box[0]), Box(*box[1])
-    return RigidTransform(), Convex(np.ascontiguousarray(scene.body_mesh(k).vertices.T), scene.bodies[k].name)
-
-
-def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scene, parameters: DrakeParameters) -> None:
-    """The scene's bodies (body<k>) with their convex hulls, their hull vertices for point contact with the floor
-    (body<k>_vertices, welded to body<k>), its hinges (add_hinges; every other body is free), the floor (a half space
-    on a body welded to the world) and the collision filters that make hulls meet hulls and vertices meet the floor
-    only (see the module docstring)."""
-    hulls, vertices = [], []
-    for k in range(scene.n_bodies):
-        rigid_body = plant.AddRigidBody(f"body{k}", spatial_inertia(scene, k, parameters.effects))
-        pose, hull = hull_shape(scene, k, parameters.contact_model)
-        properties = body_properties(parameters, k)
-        hulls.append(plant.RegisterCollisionGeometry(rigid_body, pose, hull, f"body{k}", properties))
-        if parameters.contact_model == "point":
-            corners = plant.AddRigidBody(f"body{k}_vertices", SpatialInertia.Zero())
-            plant.WeldFrames(rigid_body.body_frame(), corners.body_frame())
-            for i, vertex in enumerate(hull_vertices(scene, k)):
-                vertices.append(
-                    plant.RegisterCollisionGeometry(
-                        corners, RigidTransform(vertex), Sphere(VERTEX_RADIUS), f"body{k}_vertex{i}", properties
-                    )
-                )
-    add_hinges(plant, scene)
-    floor_body = plant.AddRigidBody("floor", SpatialInertia.Zero())
-    effects = parameters.effects
-    floor_pose = RigidTransform(
-        Quaternion(rotations.tilt(*effects.floor_tilt)), [0.0, 0.0, scene.floor_z + effects.floor_offset]
-    )
-    plant.WeldFrames(plant.world_frame(), floor_body.body_frame(), floor_pose)
-    floor = plant.RegisterCollisionGeometry(
-        floor_body, RigidTransform(), HalfSpace(), "floor", floor_properties(parameters)
-    )
-    if parameters.contact_model == "point":
-        scene_graph.collision_filter_manager().Apply(
-            CollisionFilterDeclaration()
-            .ExcludeBetween(GeometrySet(hulls), GeometrySet(floor))
-            .ExcludeBetween(GeometrySet(vertices), GeometrySet(hulls))
-            .ExcludeWithin(GeometrySet(vertices))
-        )
-
-
-def add_hinges(plant: MultibodyPlant, scene: Scene) -> None:
-    """Each hinge j as RevoluteJoint hinge<j> between frames at the two anchors, parallel to the bodies' frames, about
-    the hinge's axis, with its damping and range (Drake's own joint limits)."""
-    for j, joint in enumerate(scene.joints):
-        frames = [
-            plant.AddFrame(
-                FixedOffsetFrame(
-                    f"hinge{j}_on_body{k}", plant.GetBodyByName(f"body{k}").body_frame(), RigidTransform(anchor)
-                )
-            )
-            for k, anchor in ((joint.parent, joint.parent_anchor), (joint.child, joint.child_anchor))
-        ]
-        low, high = joint.range if joint.range is not None else (-np.inf, np.inf)
-        plant.AddJoint(RevoluteJoint(f"hinge{j}", *frames, joint.axis, low, high, joint.damping))
 
 
 class JointFriction(LeafSystem):
@@ -278,63 +145,6 @@ class JointFriction(LeafSystem):
         force = np.zeros(self._plant.num_velocities())
         force[self._rate_index] = -np.clip(rates / (self._step * mobility), -self._frictions, self._frictions)
         output.SetFromVector(force)
-
-
-class FluidDrag(LeafSystem):
-    """MuJoCo's inertia-box drag in moving air (as PyBullet's world applies it, bullet_engine.BulletWorld._push) on
-    the plant's free bodies, through its applied spatial-force input: on each body's box (its principal frame, sides
-    s), a force -rho/2 s_j s_k |u_i| u_i along each axis i, u the centre of mass's velocity against the wind, and a
-    torque -rho s_i (s_j^4 + s_k^4) / 64 |w_i| w_i."""
-
-    def __init__(self, plant: MultibodyPlant, scene: Scene, effects: SceneEffects):
-        LeafSystem.__init__(self)
-        self._density, self._wind = effects.fluid_density, np.asarray(effects.wind, dtype=np.float64)
-        self._coms, axes, moments = inertial_frames(scene, effects)
-        self._axes = rotations.to_matrix(axes)  # [K, 3, 3] principal axes in the body frame
-        masses = np.array([body.mass for body in scene.bodies])
-        sums = moments.sum(axis=1, keepdims=True)
-        sides = np.sqrt(np.maximum(6.0 * (sums - 2.0 * moments) / masses[:, None], 0.0))
-        self._areas = np.stack([sides[:, 1] * sides[:, 2], sides[:, 0] * sides[:, 2], sides[:, 0] * sides[:, 1]], 1)
-        fourth = sides**4
-        arms = np.stack([fourth[:, 1] + fourth[:, 2], fourth[:, 0] + fourth[:, 2], fourth[:, 0] + fourth[:, 1]], 1)
-        self._spin_drag = sides * arms / 64.0
-        bodies = [plant.GetBodyByName(f"body{k}") for k in range(scene.n_bodies)]
-        self._indices = [body.index() for body in bodies]
-        self._positions = [body.floating_positions_start() for body in bodies]
-        self._velocities = [plant.num_positions() + body.floating_velocities_start_in_v() for body in bodies]
-        self._state = self.DeclareVectorInputPort("state", plant.num_positions() + plant.num_velocities())
-        self.DeclareAbstractOutputPort(
-            "spatial_forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]), self._forces
-        )
-
-    def _forces(self, context, output) -> None:
-        state = self._state.Eval(context)
-        forces = []
-        for k, index in enumerate(self._indices):
-            q = state[self._positions[k] : self._positions[k] + 4]
-            rotation = rotations.to_matrix(q / np.linalg.norm(q))  # body frame in the world
-            spin = state[self._velocities[k] : self._velocities[k] + 3]
-            linear = state[self._velocities[k] + 3 : self._velocities[k] + 6]
-            principal = rotation @ self._axes[k]
-            local = principal.T @ (linear + np.cross(spin, rotation @ self._coms[k]) - self._wind)
-            turning = principal.T @ spin
-            force = -0.5 * self._density * self._areas[k] * np.abs(local) * local
-            torque = -self._density * self._spin_drag[k] * np.abs(turning) * turning
-            applied = ExternallyAppliedSpatialForce()
-            applied.body_index = index
-            applied.p_BoBq_B = self._coms[k]
-            applied.F_Bq_W = SpatialForce(principal @ torque, principal @ force)
-            forces.append(applied)
-        output.set_value(forces)
-
-
-def add_fluid_drag(builder: DiagramBuilder, plant: MultibodyPlant, scene: Scene, effects: SceneEffects) -> None:
-    """FluidDrag on the finalized plant's free bodies (none without a fluid)."""
-    if effects.fluid_density <= 0:
-        return
-    drag = builder.AddSystem(FluidDrag(plant, scene, effects))
-    builder.Connect(plant.get_state_output_port(), drag.get_input_port(0))
-    builder.Connect(drag.get_output_port(0), plant.get_applied_spatial_force_input_port())
 
 
 def add_joint_friction(builder: DiagramBuilder, plant: MultibodyPlant, frictions: list[float]) -> None:

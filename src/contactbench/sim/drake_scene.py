@@ -1,5 +1,6 @@
-"""A recordings scene in Drake's terms, what the plant (drake_engine.py) and the SDFormat writer (drake_sdf.py)
-share: the contact parameters, the contact settings fixed for every scene and the bodies' convex hulls.
+"""A recordings scene in Drake's terms, what the plant (drake_plant.py, drake_engine.py) and the SDFormat
+writer (drake_sdf.py) share: the contact parameters, the contact settings fixed for every scene and the bodies'
+convex hulls.
 
 Parameters and what they mean physically
 ----------------------------------------

@@ -1,4 +1,4 @@
-"""The scene as SDFormat for Drake's Parser (`scene_sdf`: what drake_engine.add_scene builds) and the hinges' Coulomb
+"""The scene as SDFormat for Drake's Parser (`scene_sdf`: what drake_plant.add_scene builds) and the hinges' Coulomb
 friction read back from such a file (`sdf_joint_frictions`), which the parser leaves out."""
 
 from __future__ import annotations
