@@ -12,11 +12,11 @@ from contactbench.cli import check_command_line, guarded
 @hydra.main(version_base="1.3", config_path="conf", config_name="generate")
 @guarded
 def main(cfg: DictConfig) -> None:
-    from contactbench import folders, runs, settings  # here, not above: --help answers without importing torch
+    from contactbench import checks, folders, runs  # here, not above: --help answers without importing torch
 
     if runs.crossed_variant(cfg):
         return
-    settings.check(cfg)
+    checks.check(cfg)
     folders.claim(cfg, Path(HydraConfig.get().runtime.output_dir), "generate")  # its log folder, not the dataset's
     runs.generate(cfg)
 

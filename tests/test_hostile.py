@@ -28,7 +28,7 @@ from hypothesis import settings as hypothesis_settings
 from hypothesis import strategies as st
 from test_pipeline import compose_config, run_entry_point
 
-from contactbench import cli, runs, settings
+from contactbench import checks, cli, runs
 from contactbench.errors import ContactbenchError, RecordingsError
 from contactbench.models.sysid.module import NevergradSearch, check_search_state
 from contactbench.recordings import read_recordings, write_recordings
@@ -357,6 +357,12 @@ BAD_SETTINGS = {
         "model gnn has no budget 'tiny' (expected one of smoke, sensitivity, quick, paper in its config's budgets)",
     ),
     "zero diagnosis bootstrap": (["budget.diagnose.bootstrap=0"], "budget.diagnose.bootstrap is 0"),
+    "no context frames": (["context_frames=0"], "context_frames is 0 (expected a positive integer)"),
+    "zero threads": (["torch_threads=0"], "torch_threads is 0 (expected a positive integer or null (torch's choice))"),
+    "zero frame stride": (
+        ["observation.frame_stride=0"],
+        "observation.frame_stride is 0 (expected a positive integer)",
+    ),
     "negative friction": (
         ["friction=-1"],
         "scene 'frictioncubes': friction is -1 (expected a friction coefficient >= 0)",
@@ -380,10 +386,10 @@ def test_impossible_settings_are_refused_before_anything_runs(tmp_path, case):
 
 
 def test_a_custom_variant_says_it_is_one(tmp_path, caplog):
-    settings.check(compose_config("train", ["friction=7"], tmp_path))
+    checks.check(compose_config("train", ["friction=7"], tmp_path))
     assert "friction=7 is a custom variant, not one of the paper's Table 1 variants" in caplog.text
     caplog.clear()
-    settings.check(compose_config("train", ["friction=0.75"], tmp_path))
+    checks.check(compose_config("train", ["friction=0.75"], tmp_path))
     assert "custom variant" not in caplog.text
 
 
@@ -715,7 +721,7 @@ def test_too_short_trajectories_are_one_line_from_the_command_line(tmp_path):
 def test_a_misspelled_new_top_level_key_is_refused(tmp_path, task):
     overrides = ["+contxt_frames=3"] + (["recordings=x"] if task == "diagnose" else [])
     cfg = compose_config(task, overrides, tmp_path)
-    message = settings.unknown_addition(cfg, overrides)
+    message = checks.unknown_addition(cfg, overrides)
     assert message is not None and message.startswith(f"+contxt_frames=... adds a setting {task} does not read (")
     if task != "generate":
         assert "did you mean context_frames=...?" in message
@@ -723,9 +729,9 @@ def test_a_misspelled_new_top_level_key_is_refused(tmp_path, task):
 
 def test_known_additions_and_other_overrides_are_accepted(tmp_path):
     overrides = ["+effects=[floor_tilt]", "+effect_strength=2", "friction=0.25", "++seed=3"]
-    assert settings.unknown_addition(compose_config("generate", overrides, tmp_path), overrides) is None
+    assert checks.unknown_addition(compose_config("generate", overrides, tmp_path), overrides) is None
     overrides = ["+overwrite=true", "model=sysid", "+model.module.extra=1"]  # nested keys: not top-level, left alone
-    assert settings.unknown_addition(compose_config("train", overrides[:2], tmp_path), overrides) is None
+    assert checks.unknown_addition(compose_config("train", overrides[:2], tmp_path), overrides) is None
 
 
 def test_a_misspelled_new_key_is_one_line_from_the_command_line_and_writes_nothing(tmp_path):

@@ -14,12 +14,11 @@ from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
-from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from contactbench import atomic, helptext, settings  # helptext: the resolvers conf/hydra/help/ lists options with
+from contactbench import atomic, helptext  # helptext: the resolvers conf/hydra/help/ lists options with
 from contactbench.config import CONFIG_DIR
 from contactbench.errors import ContactbenchError, NotApplicable
 
@@ -28,27 +27,6 @@ log = logging.getLogger("contactbench")
 
 def _in_multirun() -> bool:
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-
-
-class CheckConfig(Callback):
-    """Refuses an unset mandatory value (recordings=...) or an unknown +key before Hydra names the run folder."""
-
-    def on_run_start(self, config: DictConfig, **kwargs) -> None:
-        _exit_if_refused(config)
-
-    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        _exit_if_refused(config)
-
-
-def _exit_if_refused(config: DictConfig) -> None:
-    missing = settings.missing_keys(config)
-    if missing:
-        print(f"error: {missing[0]} is not set (expected {missing[0]}=... on the command line)", file=sys.stderr)
-        sys.exit(2)
-    unknown = settings.unknown_addition(config, settings.task_overrides(config))
-    if unknown:
-        print(f"error: {unknown}", file=sys.stderr)
-        sys.exit(2)
 
 
 def _one_line(error: OmegaConfBaseException) -> str:

@@ -35,6 +35,12 @@ class Observation:
         if isinstance(self.noise_mm, bool) or not isinstance(self.noise_mm, (int, float)) or not self.noise_mm >= 0:
             raise ContactbenchError(f"observation.noise_mm is {self.noise_mm!r} (expected a number >= 0, in mm)")
 
+    @classmethod
+    def of(cls, node) -> Observation:
+        """From a config's `observation` node (none: the recordings as they are); checked as it is built."""
+        node = node or {}
+        return cls(node.get("noise_mm", 0.0), node.get("frame_stride", 1), node.get("seed", 0))
+
     @property
     def plain(self) -> bool:
         """The recordings as they are (no noise, every frame)."""

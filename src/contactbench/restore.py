@@ -15,13 +15,6 @@ from contactbench.observation import Observation
 from contactbench.recordings import Recordings, require_frames
 
 
-def observation_of(cfg: DictConfig) -> Observation:
-    node = cfg.get("observation") or {}
-    return Observation(
-        noise_mm=node.get("noise_mm", 0.0), frame_stride=node.get("frame_stride", 1), seed=node.get("seed", 0)
-    )
-
-
 @dataclass(frozen=True)
 class Observed:
     """What the models see of a dataset (`dataset`), what they are scored against (`truth`) and how it was observed."""
@@ -34,7 +27,7 @@ class Observed:
 def observed(cfg: DictConfig, recorded: Recordings) -> Observed:
     """The recordings observed as cfg.observation says (noise, frame stride); synthetic data are scored against the
     clean recording, real data against what was recorded."""
-    observation = observation_of(cfg)
+    observation = Observation.of(cfg.get("observation"))
     dataset = observation.observe(recorded)
     truth = dataset if recorded.real or observation.plain else observation.clean(recorded)
     scored_against = "observed recording" if recorded.real else "clean recording"

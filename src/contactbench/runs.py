@@ -12,7 +12,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from contactbench import atomic, fitting, folders, restore, settings, tracking, variants
+from contactbench import atomic, checks, fitting, folders, restore, tracking, variants
 from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
@@ -158,7 +158,7 @@ def write_scene(model: ContactModel, dataset: Recordings, output_dir: Path, logg
 def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
-    settings.check(cfg)
+    checks.check(cfg)
     folders.check(cfg, output_dir, "train")  # before anything is written: a refused run leaves the folder as it was
     pl.seed_everything(cfg.seed, workers=True)
     _configure_torch(cfg)
@@ -202,7 +202,7 @@ def _train_dir(cfg: DictConfig) -> Path:
 def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
-    settings.check(cfg)
+    checks.check(cfg)
     folders.check(cfg, output_dir, "evaluate")
     _configure_torch(cfg)
     observed = load_dataset(cfg, [cfg.split])
@@ -225,7 +225,7 @@ def diagnose(cfg: DictConfig, output_dir: Path) -> str:
     from contactbench.diagnosis.pipeline import Budget, Decision, run_diagnosis
     from contactbench.diagnosis.report import budget_sentence, console_paragraph, write_diagnosis
 
-    settings.check(cfg)
+    checks.check(cfg)
     folders.check(cfg, Path(output_dir), "diagnose")
     path = Path(cfg.recordings)
     dataset = read_recordings(path, ["train", "val", "test"])
