@@ -152,14 +152,6 @@ def uniform_random(rng: np.random.Generator, count: int) -> np.ndarray:
     return np.where(q[..., :1] < 0, -q, q)
 
 
-def world_to_body_angular(q: np.ndarray, omega_world: np.ndarray) -> np.ndarray:
-    return rotate(conjugate(q), omega_world)
-
-
-def body_to_world_angular(q: np.ndarray, omega_body: np.ndarray) -> np.ndarray:
-    return rotate(q, omega_body)
-
-
 def angular_velocity_from_quaternions(q0: np.ndarray, q1: np.ndarray, dt: float) -> np.ndarray:
     """World-frame angular velocity that turns q0 into q1 in dt at constant rate."""
     delta = multiply(q1, conjugate(q0))
