@@ -271,6 +271,33 @@ def test_a_run_folder_refuses_to_resume_or_serve_other_settings(tmp_path):
         )
 
 
+def test_evaluate_refuses_to_rewrite_scores_of_settings_its_folder_name_does_not_say(tmp_path):
+    """context_frames and a model field are not in evaluate's folder name: scores of other ones there are kept, and
+    the refusal is one line naming the setting and what to do."""
+    from conftest import falling_cubes
+
+    from contactbench.recordings import write_recordings
+
+    write_recordings(tmp_path / "mine", falling_cubes(n_trajectories=3, n_frames=12))
+    command = ["model=mujoco_default", "dataset=recordings", f"recordings={tmp_path / 'mine'}"]
+    assert run_entry_point("evaluate.py", command, tmp_path).returncode == 0
+    (metrics,) = (tmp_path / "outputs" / "evaluate").rglob("metrics.json")
+    scores = metrics.read_bytes()
+    for changed, named in (
+        ("context_frames=4", "context_frames: 6 there, 4 here"),
+        ("model.contact_model.substeps=2", "model.contact_model.substeps: 1 there, 2 here"),
+    ):
+        refused = run_entry_point("evaluate.py", [*command, changed], tmp_path)
+        message = refused.stderr.strip()
+        assert refused.returncode == 2 and len(message.splitlines()) == 1, message
+        assert named in message and "hydra.run.dir=FOLDER" in message and "overwrite=true" in message, message
+        assert metrics.read_bytes() == scores
+    replaced = run_entry_point("evaluate.py", [*command, "context_frames=4", "overwrite=true"], tmp_path)
+    assert replaced.returncode == 0, replaced.stderr[-2000:]
+    assert json.loads(metrics.read_text())["context_frames"] == 4
+    assert run_entry_point("evaluate.py", [*command, "context_frames=4"], tmp_path).returncode == 0  # as recorded
+
+
 def test_models_never_see_the_test_split_or_the_generator(tmp_path, monkeypatch):
     seen = []
     from contactbench.models.analytical import MujocoContactModel

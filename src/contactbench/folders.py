@@ -18,6 +18,7 @@ from contactbench import atomic
 from contactbench.errors import ContactbenchError
 
 SIGNATURE = "signature.json"
+SCORED = "scored.json"  # in an evaluate folder: what its scores are of (a signature, as a train folder's)
 INDEX = "index"  # under paths.log_dir: one entry per fitted run, named by its signature
 OUTCOME = "outcome.json"  # in a sweep job's folder that wrote no metrics: skipped or failed, and why
 
@@ -49,6 +50,7 @@ def run_signature(cfg: DictConfig) -> dict:
 ADVICE = {
     "resume": "Train in another folder with hydra.run.dir=FOLDER, or replace that run with resume=false",
     "score the model of": "Name the train run of these settings with train_dir=FOLDER",
+    "rewrite": "Score into another folder with hydra.run.dir=FOLDER, or replace those scores with overwrite=true",
 }
 
 
@@ -62,10 +64,29 @@ def check_signature(cfg: DictConfig, run_dir: Path, action: str) -> None:
     recorded = Path(run_dir) / SIGNATURE
     if same_signature(cfg, run_dir):
         return
-    differences = signature_differences(_read_signature(recorded), json.loads(json.dumps(run_signature(cfg))))
+    _refuse_other(recorded, run_signature(cfg), "the run there was made", action)
+
+
+def scored_signature(cfg: DictConfig, train_dir: Path | None) -> dict:
+    """What an evaluate folder's scores are of: the run's signature, the split, and the train run whose model was
+    scored (None: a model with nothing fitted). The folder's name says only some of it (not context_frames, a model
+    field set on the command line, nor train_dir)."""
+    return {
+        **run_signature(cfg),
+        "split": str(cfg.split),
+        "train_dir": None if train_dir is None else str(Path(train_dir).resolve()),
+    }
+
+
+def _refuse_other(recorded: Path, wanted: dict, what: str, action: str) -> None:
+    """Refuse (FolderRefused) where `recorded` holds another signature than `wanted`, naming what differs."""
+    wanted = json.loads(json.dumps(wanted))
+    if not recorded.is_file() or _read_signature(recorded) == wanted:
+        return
+    differences = signature_differences(_read_signature(recorded), wanted)
     shown = "; ".join(differences[:3]) + (f"; and {len(differences) - 3} more" if len(differences) > 3 else "")
     raise FolderRefused(
-        f"{recorded}: the run there was made with other settings than this command ({shown}); cannot {action} it. "
+        f"{recorded}: {what} with other settings than this command ({shown}); cannot {action} it. "
         + ADVICE.get(action, "Use another folder")
     )
 
@@ -108,8 +129,9 @@ def claim(cfg: DictConfig, output_dir: Path, task: str) -> None:
     record(cfg, output_dir, task)
 
 
-def check(cfg: DictConfig, output_dir: Path, task: str) -> None:
-    """Refuse (FolderRefused) a folder this command may not use; writes nothing."""
+def check(cfg: DictConfig, output_dir: Path, task: str, scored: dict | None = None) -> None:
+    """Refuse (FolderRefused) a folder this command may not use; writes nothing. `scored`: what evaluate's scores
+    will be of (`scored_signature`): scores of other settings there are not rewritten unless cfg.overwrite."""
     output_dir = Path(output_dir)
     if task == "train":
         if cfg.get("resume", True):
@@ -120,6 +142,8 @@ def check(cfg: DictConfig, output_dir: Path, task: str) -> None:
             f"{output_dir / SIGNATURE}: this folder holds a train run; {task} would write into it "
             "(expected a folder of its own: leave hydra.run.dir at its default or name a new folder)"
         )
+    elif scored is not None and not cfg.get("overwrite", False):
+        _refuse_other(output_dir / SCORED, scored, "the scores there were made", "rewrite")
 
 
 def release(output_dir: Path) -> None:
@@ -140,6 +164,12 @@ def record(cfg: DictConfig, output_dir: Path, task: str) -> None:
     if task == "train":
         atomic.write_json(output_dir / SIGNATURE, run_signature(cfg))
     _write_hydra_record(cfg, output_dir)
+
+
+def record_scores(output_dir: Path, scored: dict) -> None:
+    """What the scores just written to output_dir are of (`scored_signature`): written with them, so that a command
+    refused or failed on the way leaves the record of the scores that are there."""
+    atomic.write_json(Path(output_dir) / SCORED, scored)
 
 
 def check_checkpoint(cfg: DictConfig, output_dir: Path) -> None:

@@ -203,15 +203,18 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
     checks.check(cfg)
-    folders.check(cfg, output_dir, "evaluate")
+    train_dir = _train_dir(cfg)
+    scored = folders.scored_signature(cfg, train_dir if (train_dir / "fitted.json").is_file() else None)
+    folders.check(cfg, output_dir, "evaluate", scored)
     _configure_torch(cfg)
     observed = load_dataset(cfg, [cfg.split])
     folders.record(cfg, output_dir, "evaluate")
     logger = tracking.make_logger(cfg, output_dir)
     status = "failed"
     try:
-        model = restore.load_fitted(cfg, observed.dataset, _train_dir(cfg))
+        model = restore.load_fitted(cfg, observed.dataset, train_dir)
         document = _score_and_write(cfg, model, observed, cfg.split, output_dir, logger)
+        folders.record_scores(output_dir, scored)
         status = "success"
     finally:
         tracking.close_logger(logger, status)
