@@ -27,7 +27,7 @@ import pytorch_lightning as pl
 import torch
 
 from contactbench.errors import ContactbenchError, require_positive_integers
-from contactbench.models.sysid.module import IdentifiedModule, save_last_checkpoint, val_subset
+from contactbench.models.sysid.module import IdentifiedModule, package_versions, save_last_checkpoint, val_subset
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
 from contactbench.scene import Recordings, Split
@@ -298,6 +298,13 @@ class GradientSysIDModule(IdentifiedModule):
             optional=("window_frames", "truncation"),
         )
         self.save_hyperparameters(ignore=["dataset"], logger=False)
+
+    def fitted_summary(self) -> dict:
+        return {
+            **super().fitted_summary(),
+            "optimizer": {"name": "Adam", "gradients": "jax.jacfwd through MJX"},
+            "versions": package_versions("mujoco", "mujoco-mjx", "jax", "jaxlib"),
+        }
 
 
 class AdamThroughMjx(pl.Callback):

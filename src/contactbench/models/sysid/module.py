@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from importlib import metadata
 from pathlib import Path
 
 import nevergrad as ng
@@ -24,6 +25,20 @@ from contactbench.scene import Recordings
 from contactbench.sim import engines
 
 log = logging.getLogger(__name__)
+
+# The distributions that simulate for each engine (sim/engines.py), named in a fit's record with their versions.
+ENGINE_PACKAGES = {"mujoco": ("mujoco",), "bullet": ("pybullet",), "drake": ("drake",)}
+
+
+def package_versions(*distributions: str) -> dict[str, str]:
+    """Installed versions of the distributions a fit ran on ('not installed' where one is missing)."""
+    found = {}
+    for name in distributions:
+        try:
+            found[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            found[name] = "not installed"
+    return found
 
 
 class SysIDDataModule(pl.LightningDataModule):
@@ -135,6 +150,35 @@ class SysIDModule(IdentifiedModule):
     def generations_per_restart(self) -> int:
         return -(-self.hparams.evaluations // self.hparams.num_workers)
 
+    def fitted_summary(self) -> dict:
+        h = self.hparams
+        chosen = []
+        for restart in range(h.restarts):
+            chosen.append(optimizer_choice(new_optimizer(self, restart)))
+        stop_recast_threads()
+        return {
+            **super().fitted_summary(),
+            # NGOpt picks its algorithm from the space, budget and workers alone, never from the seed or the losses:
+            # re-created here as the search created it, the choice is the one each restart ran.
+            "optimizer": {"name": h.optimizer, "chosen": chosen},
+            "versions": package_versions("nevergrad", *ENGINE_PACKAGES.get(h.engine, ())),
+        }
+
+
+def new_optimizer(module: SysIDModule, restart: int) -> ng.optimizers.base.Optimizer:
+    """Restart `restart`'s optimiser as the search creates it: its own seed, the whole budget, `num_workers` asks."""
+    h = module.hparams
+    space = module.space.parametrization(seed=h.seed * 1000 + restart, restart=restart)
+    return ng.optimizers.registry[h.optimizer](parametrization=space, budget=h.evaluations, num_workers=h.num_workers)
+
+
+def optimizer_choice(optimizer: ng.optimizers.base.Optimizer) -> str:
+    """The algorithm an optimiser runs: for NGOpt (a wizard that delegates), the one it selected for this problem,
+    with the optimiser inside it where it wraps one (NGOpt's MetaModel around CMA: 'MetaModel(ParametrizedCMA())')."""
+    chosen = getattr(optimizer, "optim", optimizer)  # NGOpt's `optim` is its selected optimiser, made on first use
+    inner = getattr(chosen, "_optim", None)
+    return f"{chosen.name}({inner.name})" if isinstance(inner, ng.optimizers.base.Optimizer) else chosen.name
+
 
 def save_last_checkpoint(trainer: pl.Trainer) -> None:
     """checkpoints/last.ckpt after every step of a search, atomically: a SIGKILL loses at most the step in flight.
@@ -214,7 +258,14 @@ class NevergradSearch(pl.Callback):
             trainer.should_stop = True
             return
         if self.optimizer is None:
-            self.optimizer = self._new_optimizer(module)
+            self.optimizer = new_optimizer(module, self.restart)
+            log.info(
+                "SysID restart %d/%d: %s runs %s",
+                self.restart + 1,
+                h.restarts,
+                h.optimizer,
+                optimizer_choice(self.optimizer),
+            )
             self._replay(module)
         candidates = [self.optimizer.ask() for _ in range(self._generation_size(module, self.generation))]
         indices = self._batch(module)
@@ -239,13 +290,6 @@ class NevergradSearch(pl.Callback):
             self._finish_restart(module)
             trainer.should_stop = self.restart >= h.restarts
         save_last_checkpoint(trainer)
-
-    def _new_optimizer(self, module: SysIDModule):
-        h = module.hparams
-        space = module.space.parametrization(seed=h.seed * 1000 + self.restart, restart=self.restart)
-        return ng.optimizers.registry[h.optimizer](
-            parametrization=space, budget=h.evaluations, num_workers=h.num_workers
-        )
 
     @staticmethod
     def _generation_size(module: SysIDModule, generation: int) -> int:
