@@ -12,8 +12,8 @@ rigidity holds at every step by construction, as Allen et al. (2022) obtain with
   With solid_inertia (model=gnn's default) J is instead n times the body's own inertia per unit mass about c: the
   outputs act as forces on the solid body, so a push at one vertex turns a cube as a blow there would, three times
   as fast as the least-squares fit has it (Newton–Euler, exactly where the vertex centroid is the centre of mass,
-  as for every benchmark solid and the real cube). Frictioncubes μ = 0.5, val position 0.281 -> 0.199 widths; the
-  real cube, whose impacts and tracking are not PyBullet's, 0.218 -> 0.295 (commit a754e2c).
+  as for every benchmark solid and the real cube). It helps on PyBullet-made tosses and hurts on the real cube,
+  whose impacts and tracking are not PyBullet's (measured: docs/results/matrix.md).
 - Contact gate: a vertex contributes only when it is within `contact_distance` of the floor or has a collision edge
   to another body; with floor_gate (the default) only when within floor_gate of the floor now or at the next
   frame in free flight, so nothing acts on a body a step or more before it lands. Far from everything a body
