@@ -41,7 +41,7 @@ from contactbench.sim.bullet_world import (
     parking_spot,
     recorded_motion,
 )
-from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertial_frames
+from contactbench.sim.effects import NO_EFFECTS, InertiaBoxDrag, SceneEffects, inertial_frames
 from contactbench.sim.quiet_pybullet import pybullet
 from contactbench.sim.stepped import World
 
@@ -72,7 +72,7 @@ class BulletWorld(World):
             for n, j in enumerate(tree.joints):
                 self.links[self.joints[j].child] = (i, n)
         self.parameters: BulletParameters | None = None
-        self.drag: SceneEffects | None = None  # the effects whose drag acts, None without a fluid
+        self.drag: InertiaBoxDrag | None = None  # None without a fluid
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self.bodies = self._build()
@@ -86,10 +86,6 @@ class BulletWorld(World):
         self.coms, self.axes, self.moments = inertial_frames(self.scene, effects)
         # Every mesh frame at its centre of mass and along its principal axes (a generated scene): nothing to convert
         self.mesh_frames_inertial = not self.coms.any() and bool(np.all(self.axes == [1.0, 0.0, 0.0, 0.0]))
-        masses = np.array([body.mass for body in self.scene.bodies])
-        # The inertia box of every body (MuJoCo's fluid model): the sides of the uniform box with its principal moments
-        sums = self.moments.sum(axis=1, keepdims=True)
-        self.box_sides = np.sqrt(np.maximum(6.0 * (sums - 2.0 * self.moments) / masses[:, None], 0.0))
 
     def close(self) -> None:
         if pybullet.isConnected(self.client):
@@ -233,7 +229,7 @@ class BulletWorld(World):
         pybullet.changeDynamics(
             self.floor, -1, anisotropicFriction=[root, 1.0 / root, 1.0], physicsClientId=self.client
         )
-        self.drag = effects if effects.fluid_density > 0 else None
+        self.drag = InertiaBoxDrag(self.scene, effects, self.moments) if effects.fluid_density > 0 else None
         factor = scene.inertia_scale / self.scene.inertia_scale
         inertia = factor != self.inertia_factor
         for k, (i, link) in enumerate(self.links):
@@ -334,27 +330,15 @@ class BulletWorld(World):
         return (poses, velocities) if self.mesh_frames_inertial else self._to_mesh(poses, velocities)
 
     def _push(self, poses: np.ndarray, velocities: np.ndarray) -> None:
-        """The inertia-box drag of MuJoCo's fluid model in moving air, applied for the next step: on each body's box
-        (its principal frame, sides s), a force -rho/2 s_j s_k |u_i| u_i along each axis i, u the velocity against the
-        wind, and a torque -rho s_i (s_j^4 + s_k^4) / 64 |w_i| w_i. `poses` [K, 7] and `velocities` [K, 6] are the
+        """The drag (sim/effects.InertiaBoxDrag) for the next step; `poses` [K, 7] and `velocities` [K, 6] are the
         inertial frames' (PyBullet's)."""
-        density, wind = self.drag.fluid_density, np.asarray(self.drag.wind, dtype=float)
         frames = rotations.to_matrix(poses[:, 3:])  # [K, 3, 3] principal axes in the world
-        local = np.einsum("kji,kj->ki", frames, velocities[:, :3] - wind)
-        spin = np.einsum("kji,kj->ki", frames, velocities[:, 3:])
-        sides = self.box_sides
-        areas = np.stack([sides[:, 1] * sides[:, 2], sides[:, 0] * sides[:, 2], sides[:, 0] * sides[:, 1]], axis=1)
-        force = -0.5 * density * areas * np.abs(local) * local
-        fourth = sides**4
-        arms = np.stack([fourth[:, 1] + fourth[:, 2], fourth[:, 0] + fourth[:, 2], fourth[:, 0] + fourth[:, 1]], axis=1)
-        torque = -density * sides * arms / 64.0 * np.abs(spin) * spin
-        for body, pose, frame, f, t in zip(self.bodies, poses, frames, force, torque):
+        forces, torques = self.drag.wrenches(frames, velocities[:, :3], velocities[:, 3:])
+        for body, pose, force, torque in zip(self.bodies, poses, forces, torques):
             pybullet.applyExternalForce(
-                body, -1, (frame @ f).tolist(), pose[:3].tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client
+                body, -1, force.tolist(), pose[:3].tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client
             )
-            pybullet.applyExternalTorque(
-                body, -1, (frame @ t).tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client
-            )
+            pybullet.applyExternalTorque(body, -1, torque.tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client)
 
     def _toss_hinged(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
         """A toss of a scene with joints: the roots' states and the joints' are read, every child placed on its

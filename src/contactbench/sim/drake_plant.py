@@ -37,7 +37,7 @@ from contactbench.sim.drake_scene import (
     box_extents,
     hull_vertices,
 )
-from contactbench.sim.effects import NO_EFFECTS, SceneEffects, inertial_frames, inertials
+from contactbench.sim.effects import NO_EFFECTS, InertiaBoxDrag, SceneEffects, inertial_frames, inertials
 
 
 def body_properties(parameters: DrakeParameters, k: int) -> ProximityProperties:
@@ -146,23 +146,14 @@ def add_hinges(plant: MultibodyPlant, scene: Scene) -> None:
 
 
 class FluidDrag(LeafSystem):
-    """MuJoCo's inertia-box drag in moving air (as PyBullet's world applies it, bullet_tosses.BulletWorld._push) on
-    the plant's free bodies, through its applied spatial-force input: on each body's box (its principal frame, sides
-    s), a force -rho/2 s_j s_k |u_i| u_i along each axis i, u the centre of mass's velocity against the wind, and a
-    torque -rho s_i (s_j^4 + s_k^4) / 64 |w_i| w_i."""
+    """The inertia-box drag in moving air (sim/effects.InertiaBoxDrag, as PyBullet's world applies it) on the plant's
+    free bodies, through its applied spatial-force input."""
 
     def __init__(self, plant: MultibodyPlant, scene: Scene, effects: SceneEffects):
         LeafSystem.__init__(self)
-        self._density, self._wind = effects.fluid_density, np.asarray(effects.wind, dtype=np.float64)
         self._coms, axes, moments = inertial_frames(scene, effects)
         self._axes = rotations.to_matrix(axes)  # [K, 3, 3] principal axes in the body frame
-        masses = np.array([body.mass for body in scene.bodies])
-        sums = moments.sum(axis=1, keepdims=True)
-        sides = np.sqrt(np.maximum(6.0 * (sums - 2.0 * moments) / masses[:, None], 0.0))
-        self._areas = np.stack([sides[:, 1] * sides[:, 2], sides[:, 0] * sides[:, 2], sides[:, 0] * sides[:, 1]], 1)
-        fourth = sides**4
-        arms = np.stack([fourth[:, 1] + fourth[:, 2], fourth[:, 0] + fourth[:, 2], fourth[:, 0] + fourth[:, 1]], 1)
-        self._spin_drag = sides * arms / 64.0
+        self._drag = InertiaBoxDrag(scene, effects, moments)
         bodies = [plant.GetBodyByName(f"body{k}") for k in range(scene.n_bodies)]
         self._indices = [body.index() for body in bodies]
         self._positions = [body.floating_positions_start() for body in bodies]
@@ -174,21 +165,18 @@ class FluidDrag(LeafSystem):
 
     def _forces(self, context, output) -> None:
         state = self._state.Eval(context)
+        quaternions = np.array([state[start : start + 4] for start in self._positions])
+        rotation = rotations.to_matrix(quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True))
+        spin = np.array([state[start : start + 3] for start in self._velocities])
+        origin = np.array([state[start + 3 : start + 6] for start in self._velocities])
+        linear = origin + np.cross(spin, np.einsum("kij,kj->ki", rotation, self._coms))  # the centres of mass'
+        world_forces, world_torques = self._drag.wrenches(rotation @ self._axes, linear, spin)
         forces = []
-        for k, index in enumerate(self._indices):
-            q = state[self._positions[k] : self._positions[k] + 4]
-            rotation = rotations.to_matrix(q / np.linalg.norm(q))  # body frame in the world
-            spin = state[self._velocities[k] : self._velocities[k] + 3]
-            linear = state[self._velocities[k] + 3 : self._velocities[k] + 6]
-            principal = rotation @ self._axes[k]
-            local = principal.T @ (linear + np.cross(spin, rotation @ self._coms[k]) - self._wind)
-            turning = principal.T @ spin
-            force = -0.5 * self._density * self._areas[k] * np.abs(local) * local
-            torque = -self._density * self._spin_drag[k] * np.abs(turning) * turning
+        for index, com, force, torque in zip(self._indices, self._coms, world_forces, world_torques):
             applied = ExternallyAppliedSpatialForce()
             applied.body_index = index
-            applied.p_BoBq_B = self._coms[k]
-            applied.F_Bq_W = SpatialForce(principal @ torque, principal @ force)
+            applied.p_BoBq_B = com
+            applied.F_Bq_W = SpatialForce(torque, force)
             forces.append(applied)
         output.set_value(forces)
 
