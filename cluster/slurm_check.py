@@ -366,9 +366,10 @@ def check(cluster: Cluster, extra: list[str]) -> None:
         )
     restored = [
         line
-        for path in sorted((sweep / ".submitit" / job).glob("*_log.err"))
+        # Lightning logs through Python's logging, which the job's Hydra logging config sends to stdout
+        for path in sorted((sweep / ".submitit" / job).glob("*_log.*"))
         for line in path.read_text(errors="replace").splitlines()
-        if line.startswith("Restored all states from the checkpoint") and str(checkpoint) in line
+        if "Restored all states from the checkpoint" in line and str(checkpoint) in line
     ]
     if not restored:
         raise CheckFailed(f"{sweep / '.submitit' / job}: no Lightning 'Restored all states from {checkpoint}' line")
