@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 # Fresh processes a toss may kill, as the first toss in each, before it counts as unstable: drake 1.51.1 crashed at
 # random even there, and ran the same toss through when run again.
 FRESH_TRIES = 3
+CRASH_PRONE_TASK_TOSSES = 32  # tosses per task for a world that may crash its process (World.in_process False)
 Item = tuple[Any, np.ndarray, np.ndarray]  # (parameters, poses0 [K, 7], velocities0 [K, 6]) of one toss
 
 
@@ -170,7 +171,10 @@ class SteppedRollouts(Rollouts):
         poses, velocities = np.full((len(items), n_steps, k, 7), np.nan), np.full((len(items), n_steps, k, 6), np.nan)
         chunks = [chunk.tolist() for chunk in np.array_split(np.arange(len(items)), self.nthread) if len(chunk)]
         queues = dict(enumerate(chunks))
-        batch = len(items) if self._local.in_process else 1  # tosses per task
+        # Tosses per task: a world that may crash its process sends a few at a time (a crash then costs the task's
+        # unfinished tosses, run again one per task to find the one that crashed; one toss per task costs its
+        # inter-process round trip on every toss, which outweighs a short toss's own simulation).
+        batch = len(items) if self._local.in_process else CRASH_PRONE_TASK_TOSSES
         fresh_kills = dict.fromkeys(range(len(items)), 0)
         while queues and self._generation == generation:
             running = []
