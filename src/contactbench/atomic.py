@@ -49,7 +49,7 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
 def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
     """An .npz archive (readable by np.load) whose bytes depend only on the arrays."""
     buffer = io.BytesIO()
-    # Stored, not deflated: float data compresses by ~15% only, and deflate doubled the generator's time.
+    # Stored, not deflated: float data compresses little, and deflate slowed the generator down markedly.
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
         for name in sorted(arrays):
             array_buffer = io.BytesIO()

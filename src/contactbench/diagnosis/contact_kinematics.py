@@ -27,8 +27,8 @@ from contactbench.scene import Recordings, Split
 # rock, so a resting face's vertices lie up to a few mm apart).
 TOUCH = 0.02
 # Flat on a face: the most downward face normal within this angle of -z, and the body tilting slower than
-# TILT_SPEED at its edges (|w_horizontal| width / 2). Looser selections let tumbling in: with 10 degrees and 0.2 m/s
-# a null cube's anisotropy amplitude rose from 0.004 to 0.03 and the fit's residual from 0.09 to 0.6 m/s^2.
+# TILT_SPEED at its edges (|w_horizontal| width / 2). Looser selections let tumbling in, and a null cube then reads
+# as anisotropic at the margin with a far worse fit (docs/results/calibration.md).
 FLAT_ANGLE = np.radians(6.0)
 
 

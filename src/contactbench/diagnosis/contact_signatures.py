@@ -31,29 +31,25 @@ from contactbench.scene import Recordings, Split
 
 SPLITS = ("train", "val", "test")
 
-# Practical margins, each above what PyBullet shows with nothing concealed (cubes seeds 0-4, octahedra and tetrahedra
-# seeds 0-1, dodecahedra seeds 0-1, icosahedra seeds 0-1, truncated octahedron, rhombicuboctahedron; val intervals)
-# and, where an effect shows there, below what the library's reference effects (strength 1) give:
-# - anisotropy amplitude a of mu(theta) = mu0 (1 + a cos 2(theta - axis)): null cubes and octahedra within +-0.01
-#   (intervals); a floor friction 1.5x (2x) larger along x than y gives 0.15-0.17 (0.21). 0.03: a ratio of 1.06.
+# Practical margins, each above what PyBullet shows with nothing concealed (the val intervals of null datasets of
+# every shape) and, where an effect shows there, below what the library's reference effects (strength 1) give; what
+# the nulls and the effects gave: docs/results/calibration.md.
+# - anisotropy amplitude a of mu(theta) = mu0 (1 + a cos 2(theta - axis)); 0.03 is a ratio of 1.06.
 ANISOTROPY_MARGIN = 0.03
-# - relative change of mu over the central 80% of the slip speeds: nulls within +-0.02 (intervals); a viscous floor
-#   (1.5 / s, 3 / s) +0.07 (+0.11).
+# - relative change of mu over the central 80% of the slip speeds.
 SPEED_MARGIN = 0.05
-# - spread of mu over floor cells, relative, debiased: nulls below 0.01 (intervals); a 0.4 m checkerboard of
-#   frictions 0.5 and 0.3 gives 0.12 on val (not confirmed on test), of 0.5 and 0.425 0.04 (cells straddle tiles).
+# - spread of mu over floor cells, relative, debiased (a checkerboard's cells straddle tiles, so its spread reads low).
 POSITION_MARGIN = 0.03
-# - torsional and rolling resistance in metres (torque per unit load): nulls within +-0.002 pivoting on a vertex's
-#   spin, 0.0003-0.0021 rolling; the reference effects give 0.0104 and 0.0097-0.0113. Rolling's margin is higher: a
-#   viscous floor (1.5 / s) resists a dodecahedron's roll by 0.0035 m, drag and spin damping by up to 0.005 m.
+# - torsional and rolling resistance in metres (torque per unit load). Rolling's margin is higher: a viscous floor,
+#   drag and spin damping resist a roll too.
 SPIN_MARGIN = 0.003  # m
 ROLLING_MARGIN = 0.005  # m
-# - share of flat sliding frames whose spin is held below HELD_SPIN: nulls 0.04-0.18, the reference torsional
-#   friction 0.69-0.85 (spin sticks at zero, so kinetic steps all but vanish).
+# - share of flat sliding frames whose spin is held below HELD_SPIN (torsional friction makes spin stick at zero, so
+#   its kinetic steps all but vanish).
 HELD_MARGIN = 0.4
 # - bounce ratio (rebound / approach speed of the landing vertex): its change over the central 80% of approach
-#   speeds, nulls up to 0.2 (intervals up to 0.32: PyBullet's own bounce depends on the impact speed); its spread
-#   over floor cells, nulls up to 0.07 (intervals up to 0.15). No effect of the generator changes either.
+#   speeds (wide: PyBullet's own bounce depends on the impact speed), and its spread over floor cells. No effect of
+#   the generator changes either.
 BOUNCE_SPEED_MARGIN = 0.3
 BOUNCE_POSITION_MARGIN = 0.15
 

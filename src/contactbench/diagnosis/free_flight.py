@@ -32,8 +32,8 @@ CLEARANCE = 0.2
 MARGIN = 0.005
 # A frame whose centre of mass falls at less than this fraction of |g| is held up by something (a floor higher or
 # tilted against the recorded one, a neighbour), not flying: drag that strong would mean a terminal speed of a few
-# m/s. (Synthetic tosses with twice the library's reference drag fall at >= 0.75 g; a floor tilted by 0.04 rad left
-# 900 of 3800 "free" val frames of a truncated octahedron below 0.5 g; the real cube 1 of 1802.)
+# m/s. (Strong synthetic drag stays well above it; a tilted floor leaves many "free" frames below it, the real cube
+# almost none: docs/results/calibration.md.)
 SUPPORTED = 0.5
 # What free flight says of an effect that must show there (an apparent gravity, a drag): on val it is measured
 # (beyond MARGIN, significant), ruled out (its whole interval within MARGIN of none), or inconclusive (neither: too
@@ -161,8 +161,8 @@ def system_motion(dataset: Recordings, split: Split) -> tuple[np.ndarray, np.nda
 def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: int, confidence: float = 0.95) -> dict:
     """One split's free-flight accelerations as a constant plus a drag, a = c - k |v| v, fitted by least squares over
     every free-flight frame, with standard errors and percentile intervals from resampling trajectories (the frames of
-    one toss count together). c is the fall net of the drag: drag shifts a plain mean (twice the library's reference
-    drag made a cube fall at 0.94 g on average), c stays at g. And k times the median squared speed, the deceleration
+    one toss count together). c is the fall net of the drag: drag shifts a plain mean (a strong drag makes a body fall
+    measurably below g on average), c stays at g. And k times the median squared speed, the deceleration
     the drag causes at a typical speed. A tree of jointed bodies gives one row per frame, its centre of mass's."""
     free = free_frames(dataset, split)[:, :, [members[0] for members in systems(dataset)]]  # [N, T, S]
     velocity, acceleration = system_motion(dataset, split)
@@ -196,16 +196,15 @@ def measure(dataset: Recordings, split: Split, rng: np.random.Generator, draws: 
 
 def check(dataset: Recordings, rng: np.random.Generator, draws: int = 1000, confidence: float = 0.95) -> dict:
     """The free-flight findings (`measure` per split). The fall: the scale a/g along meta.gravity fitted on train;
-    whether val says it differs from 1 (interval excludes it, by at least MARGIN); whether test confirms the same
-    side. An apparent gravity where it differs and, on val, the fall has no part across gravity beyond MARGIN (a
-    steady push sideways is a force: wind, or bodies counted as flying rest on a tilted floor), nothing pushes
-    bodies along their motion (drag's interval below zero, by MARGIN: in free flight nothing can, so some "free"
-    frames touch a floor sloping away; a truncated octahedron on a floor tilted by 0.04 rad fell at 0.99 g), and it
-    differs by more than the drag decelerates at a typical speed (what an error in the drag's form may shift: twice
-    the reference drag moved a cube's fall by 0.4%). The drag: measured where on val its interval lies above zero
-    and it decelerates by at least MARGIN of |meta.gravity| at a typical speed, confirmed where test's interval lies
-    above zero too. Each is then MEASURED, RULED_OUT (val's interval of the fall within MARGIN of meta.gravity; of
-    the drag's deceleration below MARGIN) or INCONCLUSIVE: `gravity_evidence`, `drag_evidence`."""
+    whether val says it differs from 1 (interval excludes it, by at least MARGIN); whether test confirms the same side.
+    An apparent gravity where it differs and, on val, the fall has no part across gravity beyond MARGIN (a steady push
+    sideways is a force: wind, or bodies counted as flying rest on a tilted floor), nothing pushes bodies along their
+    motion (drag's interval below zero, by MARGIN: in free flight nothing can, so some "free" frames touch a floor
+    sloping away and seem to fall slower), and it differs by more than the drag decelerates at a typical speed (what an
+    error in the drag's form may shift the fall by). The drag: measured where on val its interval lies above zero and it
+    decelerates by at least MARGIN of |meta.gravity| at a typical speed, confirmed where test's interval lies above zero
+    too. Each is then MEASURED, RULED_OUT (val's interval of the fall within MARGIN of meta.gravity; of the drag's
+    deceleration below MARGIN) or INCONCLUSIVE: `gravity_evidence`, `drag_evidence`."""
     gravity = np.asarray(dataset.gravity, dtype=float)
     g = float(np.linalg.norm(gravity))
     down = gravity / g

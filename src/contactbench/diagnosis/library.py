@@ -69,17 +69,16 @@ class Effect:
 
 # Resolutions: below them a fitted effect is a knob for the contact's model-form error, not the physics it names.
 # Lengths: MuJoCo's soft contacts sink about a millimetre at rest, so a floor or centre of mass moved by less is the
-# contact's softness (an icosahedron's drag came with a 0.3 mm floor offset that "closed" 13%), and switching rolling
-# or torsional friction on changes MuJoCo's contact itself (condim 6 or 4: a rhombicuboctahedron null "improved" 5%
-# at 5e-5 m; 0.005 m went unnoticed in the first blind proof).
+# contact's softness, and switching rolling or torsional friction on changes MuJoCo's contact itself (condim 6 or 4),
+# so a tiny value "improves" a null. The cases that set them: docs/results/calibration.md.
 LENGTH_RESOLUTION = 1e-3  # m
 RATIO_RESOLUTION = 0.02  # inertia scales, friction anisotropy
 ANGLE_RESOLUTION = 2e-3  # rad: a millimetre over the half metre a toss travels
-# A wind under a tenth of the tosses' ~1 m/s is air drag fitted beside other base parameters (a cube's true drag was
-# named wind at 1 mm/s, an octahedron's at 1.5 cm/s).
+# A wind under a tenth of the tosses' ~1 m/s is air drag fitted beside other base parameters (true drags were named
+# wind at speeds far below it).
 WIND_RESOLUTION = 0.1  # m/s
-# gravity_scale: the free-flight check's margin (a dodecahedron null was named at 1.00008 g, "closing" 5%: the refit of
-# the base parameters the candidate brought, not gravity)
+# gravity_scale: the free-flight check's margin (a null was once named at a gravity indistinguishable from 1 g: what
+# "closed" the loss was the refit of the base parameters the candidate brought, not gravity)
 GRAVITY_RESOLUTION = MARGIN
 
 GRAVITY_SCALE_BOUNDS = (0.8, 1.2)
@@ -97,7 +96,7 @@ def library(
     `gravity` / `drag`: what the free-flight check says of an apparent gravity / a drag on val (diagnosis.free_flight:
     MEASURED, RULED_OUT, INCONCLUSIVE). A drag there is air_drag's or wind's (drag in moving air): both share its
     evidence, and wind must still beat air_drag (Diagnosis.require_more_than_special_cases). Ruled out, they gain on
-    the simulator's loss only through contact (nulls: drag and wind closed 3.1% and 3.5% of the base loss).
+    the simulator's loss only through contact (they close a few percent of the base loss on nulls).
     `contact`: what the model-free contact signatures say of anisotropic_friction, torsional_friction and
     rolling_friction (diagnosis.contact_signatures.measure's `evidence`; absent: INCONCLUSIVE)."""
     contact = contact or {}
@@ -199,10 +198,10 @@ def library(
 def base_parameters(n_bodies: int) -> tuple[Parameter, ...]:
     """Table 2c: object friction per body, floor stiffness (log), floor damping; and the floor contacts' impedance
     (MuJoCo's solimp dmin, dmax, width, starting at MuJoCo's defaults), which shapes an impact beyond stiffness and
-    damping: contact model-form error left in the base is what spurious candidates ride on (on a null dodecahedron
-    it closed 4.7% of the base's val loss, CI 2.8-6.4%, and 8.5% of its test full-rollout error; on null cubes and
-    tetrahedra nothing). The floor's own friction stays 0, so a floor contact's friction (MuJoCo takes the larger of
-    the two) is the object's."""
+    damping: contact model-form error left in the base is what spurious candidates ride on (on a null dodecahedron it
+    closed a significant share of the base's val loss and of its test full-rollout error; on null cubes and tetrahedra
+    nothing: docs/results/calibration.md). The floor's own friction stays 0, so a floor contact's friction (MuJoCo takes
+    the larger of the two) is the object's."""
     return (
         *(Parameter(f"object_friction_{k}", 0.0, 1.0, 0.5) for k in range(n_bodies)),
         Parameter("floor_stiffness", float(np.log(1e2)), float(np.log(1e4)), float(np.log(1e3)), log=True),

@@ -150,7 +150,7 @@ def fit_correction(
     n_phases, n_features = dictionary.linear.shape[-2:]
     # Impacts are left out: the engines' impact laws differ even with nothing concealed, and generic terms there
     # "explain" that model-form error on every null dataset. So is the normal force while in contact: MuJoCo's soft
-    # contact sinks and lifts a resting or sliding body unlike PyBullet's (on the blind nulls, 53-98% of what the
+    # contact sinks and lifts a resting or sliding body unlike PyBullet's (on the blind nulls, most of what the
     # correction closed was linear_z in contact phases, by terms in a constant and the height); that is the contact
     # stiffness (solref/solimp), not physics nobody listed.
     candidates = [

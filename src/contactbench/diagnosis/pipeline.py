@@ -51,8 +51,8 @@ def _unexplained(open_world_record: dict, predictor: dict, contact: dict, candid
     """Where the predictable mismatch is and who found it, or None where nothing predictable is left: the open-world
     correction, a flexible predictor beyond what it gains on nulls, or a contact signature measured model-free that no
     candidate named on val accounts for (physics outside the library, or a library effect whose MuJoCo model did not
-    pass: a brick's floor friction 1.3x larger along x than y, measured and confirmed on test, closed 1.1% of the
-    base val loss as MuJoCo's anisotropy)."""
+    pass: a brick's floor friction larger along x than y, measured and confirmed on test, closed less than the margin
+    of the base val loss as MuJoCo's anisotropy)."""
     if open_world_record["passes"]:
         return {"by": "open_world", "phase": open_world_record["located"]["phase"]}
     if predictor["passes"]:

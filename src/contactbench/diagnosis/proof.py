@@ -56,7 +56,7 @@ def prove(
     confirmed only where the paper's full rollouts from the context frames improve on the base's, their 95% interval
     (paired bootstrap over test tosses) above zero: what the benchmark scores is what a name must improve. The
     short-horizon loss the effects were chosen on is reported beside it, not as proof (blind sets named COM offsets,
-    inertias and rolling friction that the short horizon confirmed and full rollouts predicted 7-73% worse)."""
+    inertias and rolling friction that the short horizon confirmed and full rollouts predicted worse)."""
     budget, confidence = steps.budget, steps.decision.confidence
     before = full_rollouts(steps, base, base_values)
     after = full_rollouts(steps, final, final_values) if final.effects else before

@@ -17,8 +17,8 @@ COMPONENTS = ("linear_normal", "linear_tangential", "angular_normal", "angular_t
 # Every residual entry from the frame MuJoCo diverged at scores this much, and no entry more (finite: fits carry on).
 UNSTABLE_RESIDUAL = 10.0
 # Body widths the lowest vertex keeps above the recorded floor in an airborne segment: a floor fitted a few degrees
-# tilted or a centimetre higher must not reach it (a tetrahedron's rolling friction "gained" 30% in segments merely
-# labelled free next to a tilted floor).
+# tilted or a centimetre higher must not reach it (a rolling friction "gained" in segments merely labelled free next
+# to a tilted floor).
 AIRBORNE_CLEARANCE = 0.25
 
 

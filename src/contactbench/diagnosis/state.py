@@ -148,7 +148,7 @@ class Diagnosis:
 
     def half_segments(self) -> ResidualFit:
         """Half-length val segments (free-flight evidence, naming.airborne_gain), cut when first needed: few tosses fly
-        clear of the floor for a whole 16-frame segment (a tetrahedron's: 15 of 165 val tosses; at 8 frames 163)."""
+        clear of the floor for a whole segment, and many more for half of one."""
         if self._halves is None:
             segments = cut_segments(self.dataset, self.val_split, max(self.budget.segment_frames // 2, 1))
             simulator = SegmentSimulator(self.dataset, segments, engine_name=self.engine_name)

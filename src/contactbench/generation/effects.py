@@ -13,8 +13,8 @@ from contactbench.values import freeze_numbers
 OUTSIDE_LIBRARY = ("coriolis", "floor_viscosity", "floor_centring", "spin_damping")
 # Strength 1 of each effect. The tosses are short and slow (about 1 m/s, 0.15 s of flight, then sliding), so
 # the fluid is dense: at 60 kg/m^3 drag decelerates a sliding cube by about 1 m/s^2 against friction's ~5.
-# Rolling and spinning friction start at 0.01 m: at 0.005 m the first blind proof missed both (their short-horizon
-# signal stayed under the margin although the held-out error rose by 15-20%).
+# Rolling and spinning friction start at 0.01 m: at half that the first blind proof missed both (their short-horizon
+# signal stayed under the margin although the held-out error rose; docs/results/calibration.md).
 FLUID_DENSITY = 60.0  # kg/m^3
 
 
@@ -32,7 +32,7 @@ class ConcealedEffects:
     floor_offset: float = 0.0  # m, true floor height minus the recorded floor_z
     floor_tilt: tuple[float, float] = (0.0, 0.0)  # rad, the floor's rotation about world x, then about world y
     # PyBullet's gravity / the recorded meta.gravity: what a tracker whose time base or length scale is off shows
-    # (the real ContactNets cube falls at 0.978 g in free flight).
+    # (the real ContactNets cube falls measurably short of g in free flight: docs/results/real_data.md).
     gravity_scale: float = 1.0
     # Outside the library (OUTSIDE_LIBRARY), each an acceleration of every body's centre of mass, or its spin:
     coriolis: float = 0.0  # rad/s: in any phase, -2 coriolis z x v: the recordings' frame turns about the vertical

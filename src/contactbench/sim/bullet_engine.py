@@ -70,8 +70,8 @@ class BulletEngine(Engine):
         per_body += [Dimension(f"restitution_{k}", 0.0, 1.0, init=0.2) for k in range(n_bodies)]
         return (
             *per_body,
-            # Log scales from "none to speak of" up: 1e-6 m of both moved the frictioncubes' tosses by 0.0008 widths
-            # (1e-5 m: by 0.005), where the generator has none.
+            # Log scales from "none to speak of" up: the lower end moves the tosses by a negligible fraction of a
+            # width, where the generator has none.
             Dimension("spinning_friction", 1e-6, 1e-2, log=True, init=1e-4),
             Dimension("rolling_friction", 1e-6, 1e-2, log=True, init=1e-4),
             # PyBullet's rigid contact (error reduction with split impulses) is not a limit of its compliant one: at

@@ -15,11 +15,10 @@ Simulation
 * Hydroelastic contact uses the hulls against the floor: a cube at rest stays at rest, but dropped cubes kept
   rocking at the recordings' frame steps in our measurements (moduli 1e4..1e7 Pa), so it stays an option.
 * Discrete plant, time step = dt / substeps, Drake's semi-implicit stepping (v += h a, then q += h N(q) v).
-* Contact approximation: TAMSI (``DISCRETE_CONTACT_APPROXIMATION``), measured against SAP's "lagged" and "similar" at
-  the real cube's dt = 6.76 ms over 17 parameter sets (point stiffness 1e2..1e7 N/m log-uniform, dissipation
-  0.01..100 s/m, Drake's defaults) x 8 real tosses of 140 frames: none failed or gained energy with any of the
-  three, TAMSI took 11 ms per toss against 22 (lagged) and 33 (similar), and TAMSI is the approximation of the Drake
-  of Acosta et al. 2022. ("sap" itself ignores Hunt–Crossley dissipation.) Should TAMSI fail to converge, the toss
+* Contact approximation: TAMSI (``DISCRETE_CONTACT_APPROXIMATION``), measured against SAP's "lagged" and "similar" on
+  real-cube tosses over parameter sets spanning SysID's box (docs/results/calibration.md): none failed or gained
+  energy with any of the three, TAMSI was the fastest, and TAMSI is the approximation of the Drake of Acosta et al.
+  2022. ("sap" itself ignores Hunt–Crossley dissipation.) Should TAMSI fail to converge, the toss
   raises and SteppedRollouts turns it into an unstable (NaN) candidate.
 * A free body's state is q = (qw, qx, qy, qz, x, y, z) of its frame in world and v = (ω, v) in world: exactly the
   recordings' pose (reordered) and world velocity of the mesh-frame origin, so no conversion is needed beyond the

@@ -81,9 +81,9 @@ def spatial_inertia(scene: Scene, k: int, effects: SceneEffects = NO_EFFECTS) ->
 
 def hull_shape(scene: Scene, k: int, contact_model: str) -> tuple[RigidTransform, Box | Convex]:
     """Body k's collision shape and its pose in the body frame: in point contact a Box where the hull is one (every
-    cube here), else the Convex hull. In multi-body tosses Drake 1.51.1 crashed (a segmentation fault, at random after
-    5-60 tosses) with Convex hulls touching each other in 1 of 4 runs of 60 tosses even from fresh contexts (see
-    drake_engine._Simulation), with boxes in 1 of 7."""
+    cube here), else the Convex hull. In multi-body tosses Drake crashed (a segmentation fault, at random) with Convex
+    hulls touching each other even from fresh contexts (see drake_engine._Simulation), less often with boxes
+    (docs/results/calibration.md)."""
     box = box_extents(scene, k) if contact_model == "point" else None
     if box is not None:
         return RigidTransform(box[0]), Box(*box[1])

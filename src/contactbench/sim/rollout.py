@@ -251,7 +251,7 @@ class MujocoRollouts(Rollouts):
         if self.substeps > 1:  # keep the returned frames, not every substep, alive
             frames = np.ascontiguousarray(frames)
         frames = frames.reshape(len(models), len(initial), n_steps, self.nstate)
-        # Views into the state buffer: copying them out measured at 10-25% of the stepping time.
+        # Views into the state buffer: copying them out cost a noticeable share of the stepping time.
         poses, qvel = self.layout.unpack(frames[..., self._qpos], frames[..., self._qvel])
         expected_time = START_TIME + self.timestep * self.substeps * np.arange(1, n_steps + 1)
         diverged = np.maximum.accumulate(np.abs(frames[..., 0] - expected_time) > self.timestep / 2, axis=-1)
@@ -287,7 +287,7 @@ class MujocoRollouts(Rollouts):
                     state=out,
                     persistent_pool=self._persistent_pool,
                     # One share per thread: one frame costs about the same for every item, and MuJoCo's default of
-                    # ten shares per thread made the call 1.7x slower (how items are shared changes no number).
+                    # ten shares per thread made the call slower (how items are shared changes no number).
                     chunk_size=-(-len(states) // self.nthread),
                 )
         last = out[:, -1]

@@ -8,20 +8,14 @@ finite-difference linearisation (`rollout_loss`). Inputs are standardised with t
 outputs scaled by the standard deviation of the one-step corrections (`transitions`) and clipped to `max_correction`
 of them; the last layer starts at zero, so training starts from the identified MuJoCo itself.
 
-Why not regress the one-step correction (what MuJoCo gets wrong from each recorded state to the next)? Measured at
-budget=quick, val split: on the real cube it halved the one-step error and made rollouts worse (position 0.2345 ->
-0.27-0.33 widths), on frictioncubes mu = 0.5 (no tracker noise) likewise (0.148 -> 0.16-0.24); from the model's own
-states instead of recorded ones (DAgger-style) rotation improved on the real cube (0.41 -> 0.35-0.37 rad) and
-position still got worse (0.27-0.35). Every variant's rollout error rose while its regression loss fell. Also
-measured on the real cube's val split (SysID alone 0.2345 / 0.407 rad), none kept: the GNN's training noise in
-state form (2e-4 m, target moved with the noise) with the correction gated to bodies within 0.05 widths of the
-floor, 0.35-0.46 / 0.37-0.43 (scaled by 0.25: 0.249 / 0.358); stage two's window loss at lr 1e-3 instead of 1e-4,
-worse from the first epoch (0.254 -> 0.41) with the train loss rising (the linearised gradient agrees with central
-differences of the loss on the linear outputs only, and those differences change sign with the step: contact makes
-the rollout loss non-smooth); evolution strategies on whole train rollouts (806-parameter gated MLP, 16 antithetic
-members, 64 tosses a generation, 80 generations) 0.234-0.256, never clearly below MuJoCo alone; a per-step angular
-damping in contact, 0.2392 / 0.3875 at its best. A learned impact map in place of MuJoCo's impulse at impact frames
-(benchmarks/residual_impact_map.py, 24 variants on two splits): none below MuJoCo alone on val position.
+Why not regress the one-step correction (what MuJoCo gets wrong from each recorded state to the next)? It lowers
+the one-step error and makes rollouts worse, on the real cube and on synthetic cubes alike, and so does training it
+from the model's own states (DAgger-style): the regression loss falls while the rollout error rises. Neither did
+the GNN's training noise in state form, a larger learning rate for the window loss (the linearised gradient agrees
+with central differences of the loss on the linear outputs only, and those differences change sign with the step:
+contact makes the rollout loss non-smooth), evolution strategies on whole train rollouts, a per-step angular
+damping in contact, or a learned impact map in place of MuJoCo's impulse at impact frames come clearly below MuJoCo
+alone on val. The measurements: docs/results/matrix.md (what the residual model tried).
 
 `gradient: mjx` replaces the linearised adjoint by reverse mode through MJX (through_mjx.py): exact, the features'
 own dependence on the state included, over windows up to whole tosses (`unroll`), optionally cut every `truncation`

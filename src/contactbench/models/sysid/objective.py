@@ -16,7 +16,9 @@ from contactbench.sim.mujoco_scene import ContactParameters
 from contactbench.sim.rollout import Rollouts
 
 log = logging.getLogger(__name__)
-# One native call per group: on the real cube four leave 7% of the steps unscored (one call, 25%).
+# One native call per group of tosses of similar length: a call steps every toss to the longest one's end, so one
+# call for all wastes many steps on the real cube's uneven tosses and four waste few
+# (docs/results/calibration.md).
 LENGTH_GROUPS = 4
 
 
