@@ -87,10 +87,10 @@ def quiet_third_party() -> None:
 
 def check_command_line(task: str, argv: list[str] | None = None) -> None:
     """Hydra answers an override it cannot parse or a number given to a config group (budget=-1) with a traceback, and
-    an option a group lacks (model=nosuch) or a key the config lacks (contxt_frames=3) with a page of text: each is
-    one line here, naming the override and what was expected instead (exit 2). The config is composed as Hydra will
-    compose it (0.2 s more, 0.5-0.7 s for a sweep); for a sweep, its first job and every option it names in a config
-    group, so a misspelt option is refused before the first jobs have run."""
+    an option a group lacks (model=nosuch) or a key the config lacks (contxt_frames=3) with a page of text: each is one
+    line here, naming the override and what was expected instead (exit 2). The config is composed as Hydra will compose
+    it (a fraction of a second more, a little more for a sweep); for a sweep, its first job and every option it names in
+    a config group, so a misspelt option is refused before the first jobs have run."""
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra._internal.utils import create_config_search_path, get_args_parser

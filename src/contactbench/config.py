@@ -1,4 +1,6 @@
-"""OmegaConf resolvers the Hydra configs use: repository root and stable variant names."""
+"""What the Hydra configs rely on: where they live (REPO_ROOT, CONFIG_DIR) and the `cb.*` OmegaConf resolvers they
+call (stable variant and run-folder names, the search's step count, whether a person watches). Registered on import of
+contactbench; checking a composed config is checks.py's."""
 
 from __future__ import annotations
 

@@ -235,7 +235,7 @@ def check(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray, settings
     - training, null_gain_bounds, sentence.
 
     Uses its own random generators (settings.seed), not steps.rng: running the check changes none of the pipeline's
-    draws. About 3 s on one core at the quick budget (60 / 120 / 110 tosses)."""
+    draws. Seconds on one core at the quick budget."""
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)  # a few thousand small rows: a second thread costs more than it saves on shared cores
     try:

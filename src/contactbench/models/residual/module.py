@@ -371,7 +371,7 @@ class ResidualModule(ContactModule):
     def predict(self, inputs: np.ndarray) -> np.ndarray:
         """NumPy face of `forward` for the rollout, called once a frame. The module's mode is left as it is: Linear and
         SiLU layers compute the same in training and evaluation, so switching every submodule there and back each
-        frame would only cost time (2-3 ms a real-cube rollout)."""
+        frame would only cost time."""
         with torch.inference_mode():
             out = self(torch.as_tensor(inputs, dtype=torch.float32, device=self.device)).cpu().numpy()
         return out.astype(np.float64)
