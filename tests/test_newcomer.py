@@ -222,3 +222,30 @@ def test_table3_leaves_out_what_is_not_a_paper_variant(tmp_path):
     table3 = section(text, "Table 3, recomputed")
     assert not re.search(r"^\| mujoco_default \| (Yes|No) \|", table3, re.M)  # one paper variant: nothing to compare
     assert "frictioncubes friction=0.3 (not a paper variant)" in table3
+
+
+def test_the_papers_figures_leave_out_what_is_not_a_paper_variant(tmp_path, monkeypatch):
+    from contactbench.evaluation import figures
+
+    for value in (0.0, 0.5, 0.3):
+        variant = f"friction={value:g}"
+        write_row(tmp_path, f"{value:g}/test", task="evaluate", variant=variant, variant_values={"friction": value})
+    drawn, swept = {}, {}
+    save, sweep = figures.save_figure, figures.sweep_figure
+
+    def recorded_save(figure, path):
+        drawn[path.name] = [title.get_text().replace("\n", " ") for title in figures.titles(figure)]
+        return save(figure, path)
+
+    def recorded_sweep(runs, dataset, path):
+        swept[dataset] = sorted(run.summary["variant"] for run in runs if run.summary["dataset"] == dataset)
+        return sweep(runs, dataset, path)
+
+    monkeypatch.setattr(figures, "save_figure", recorded_save)
+    monkeypatch.setattr(figures, "sweep_figure", recorded_sweep)
+    text = write_report(tmp_path, renders=False).read_text()
+    assert swept["frictioncubes"] == ["friction=0", "friction=0.5"]  # Fig. 2 draws the paper's variants only
+    assert "frictioncubes.png" in drawn
+    assert "friction=0.3 (not a paper variant)" in drawn["error_over_time_frictioncubes.png"]
+    (said,) = [line for line in section(text, "Figures").splitlines() if line.startswith("Left out")]
+    assert "frictioncubes friction=0.3 (not a paper variant)" in said

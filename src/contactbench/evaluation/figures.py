@@ -15,6 +15,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from contactbench import variants as named_variants
+
 # dataset -> (varied parameter, figure title as in the paper)
 SWEEPS = {
     "bouncycubes": ("restitution", "Fig. 1: effect of restitution (BOUNCYCUBES)"),
@@ -266,7 +268,7 @@ def error_over_time_figure(runs: list[Run], dataset: str, path: Path) -> Path | 
             greyed = greyed or not enough[np.isfinite(_per_frame(cell[0], "pos_err"))].all()
             for row, key in enumerate(("pos_err", "rot_err_rad")):
                 _plot_curve(axes[row, column], cell, key, only=enough, color=model_colour(model), label=model)
-        axes[0, column].set_title(variant, fontsize=9)
+        axes[0, column].set_title(named_variants.label(dataset, variant), fontsize=9)
         axes[1, column].set_xlabel("frame")
         for axis in axes[:, column]:
             axis.grid(True, alpha=0.3)
@@ -370,17 +372,26 @@ def sensitivity_figure(runs: list[Run], dataset: str, variant: str, axis_key: st
         for run in cell
     )
     against = "the clean recording" if clean else "the recording"
-    figure.suptitle(f"{dataset} {variant}: error vs {label.split(' (')[0]} (test, scored against {against})")
+    shown = named_variants.label(dataset, variant)
+    figure.suptitle(f"{dataset} {shown}: error vs {label.split(' (')[0]} (test, scored against {against})")
     return save_figure(figure, path)
+
+
+def in_paper_figures(summary: dict) -> bool:
+    """Whether a run is drawn in the paper's numbered figures (1, 2, 3, 5, 7a-c) and counted in Table 3: not a
+    variant outside the benchmark's (friction=0.3), which the report names beside them (tables.custom_variants)."""
+    return named_variants.paper_variant(summary["dataset"], summary["variant"]) is not False
 
 
 def draw_all(
     root: Path, out_dir: Path, every_run: list[Run] | None = None
 ) -> tuple[list[Path], dict[str, dict[str, str]]]:
     """Every figure the test runs under root allow (or those of every_run: the report's, each score once) and
-    Table 3 over them."""
+    Table 3 over them. The paper's numbered figures and Table 3 hold the benchmark's variants only; the error over
+    time and the sensitivity figures draw every variant, a custom one marked "not a paper variant"."""
     every_run = load_test_runs(root) if every_run is None else every_run
-    runs = [run for run in every_run if observed_plainly(run.summary)]
+    plain = [run for run in every_run if observed_plainly(run.summary)]
+    runs = [run for run in plain if in_paper_figures(run.summary)]
     drawn = [sweep_figure(runs, dataset, out_dir / f"{dataset}.png") for dataset in SWEEPS]
     drawn.append(
         per_frame_figure(
@@ -393,8 +404,8 @@ def draw_all(
         )
     )
     drawn.append(pairwise_collisions_figure(runs, out_dir / "fig7b_pairwise_collisions.png"))
-    for dataset in sorted({run.summary["dataset"] for run in runs}):
-        drawn.append(error_over_time_figure(runs, dataset, out_dir / f"error_over_time_{dataset}.png"))
+    for dataset in sorted({run.summary["dataset"] for run in plain}):
+        drawn.append(error_over_time_figure(plain, dataset, out_dir / f"error_over_time_{dataset}.png"))
     drawn.append(
         per_frame_figure(
             runs,

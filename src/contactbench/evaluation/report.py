@@ -18,6 +18,7 @@ from contactbench.evaluation.renders import render_report
 from contactbench.evaluation.results_file import write_results
 from contactbench.evaluation.tables import (
     expected_markdown,
+    figures_left_out,
     grid_markdown,
     importance_sentence,
     markdown_table,
@@ -65,6 +66,7 @@ def write_report(root: Path, renders: bool = True, results: Path | None = None) 
         grid_markdown(rows),
         "## Figures\n",
         *filter(None, [mixed_budgets([run.summary for run in runs], "the figures")]),
+        *filter(None, [figures_left_out([run.summary for run in runs])]),
         *[f"![{path.stem}](figures/{path.name})\n" for path in figures],
         "## Table 3, recomputed\n",
         importance_sentence(seeded),

@@ -5,7 +5,14 @@ from __future__ import annotations
 
 from contactbench import variants
 from contactbench.evaluation.cells import Cell, cells_of, not_significant, variant_order
-from contactbench.evaluation.figures import DIMENSIONS, IMPORTANCE_THRESHOLD, Run, importance_table, observed_plainly
+from contactbench.evaluation.figures import (
+    DIMENSIONS,
+    IMPORTANCE_THRESHOLD,
+    Run,
+    importance_table,
+    in_paper_figures,
+    observed_plainly,
+)
 from contactbench.evaluation.intervals import LEVEL, RESAMPLES, over_tosses
 
 COLUMNS = [
@@ -251,22 +258,30 @@ def importance_markdown(table: dict[str, dict[str, str]]) -> str:
     return "\n".join(lines) + "\n\n" + note
 
 
+def custom_variants(summaries: list[dict]) -> list[str]:
+    """The variants among these runs that the benchmark does not name, each once and marked
+    ('frictioncubes friction=0.3 (not a paper variant)')."""
+    custom = {(row["dataset"], row["variant"]) for row in summaries if not in_paper_figures(row)}
+    return [f"{dataset} {variants.label(dataset, variant)}" for dataset, variant in sorted(custom)]
+
+
+def figures_left_out(summaries: list[dict]) -> str:
+    """One line under the figures' heading naming the custom variants the paper's numbered figures leave out."""
+    custom = custom_variants(summaries)
+    if not custom:
+        return ""
+    return (
+        "Left out of the paper's figures (Figs. 1, 2, 3, 5, 7): " + ", ".join(custom) + "; drawn, marked, in the "
+        "error-over-time figures only.\n"
+    )
+
+
 def table3_markdown(runs: list[Run]) -> str:
     """Table 3 of the paper's variants only (a custom one is named, not counted); with several budgets, a method's
     row per budget, and a warning line."""
-    custom = sorted(
-        {(run.summary["dataset"], run.summary["variant"]) for run in runs if not _counts_in_table3(run.summary)}
-    )
-    counted = [run for run in runs if _counts_in_table3(run.summary)]
+    custom = custom_variants([run.summary for run in runs])
+    counted = [run for run in runs if in_paper_figures(run.summary)]
     warning = mixed_budgets([run.summary for run in counted], "Table 3")
     method = (lambda run: f"{run.summary['model']} ({run.summary['budget']})") if warning else None
-    left_out = (
-        "Left out of Table 3: " + ", ".join(f"{dataset} {variants.label(dataset, v)}" for dataset, v in custom) + ".\n"
-        if custom
-        else ""
-    )
+    left_out = "Left out of Table 3: " + ", ".join(custom) + ".\n" if custom else ""
     return warning + importance_markdown(importance_table(counted, method)) + left_out
-
-
-def _counts_in_table3(summary: dict) -> bool:
-    return variants.paper_variant(summary["dataset"], summary["variant"]) is not False
