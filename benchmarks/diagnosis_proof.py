@@ -193,6 +193,9 @@ def main() -> None:
         help="the contact laws the diagnosis may choose its base from; leave out bullet to diagnose as if the "
         "generator's engine did not exist (the proof's second report)",
     )
+    parser.add_argument(
+        "--resume", action="store_true", help="keep the cases --out's proof.json holds already and run the others"
+    )
     parser.add_argument("--data", type=Path, default=ROOT / "data" / "proof")
     parser.add_argument("--out", type=Path, default=None, help="default: outputs/proof/<set>")
     args = parser.parse_args()
@@ -200,8 +203,13 @@ def main() -> None:
     out = args.out or ROOT / "outputs" / "proof" / (args.set + excluded)
     started = time.perf_counter()
     rows = []
+    if args.resume and (out / "proof.json").exists():
+        rows = json.loads((out / "proof.json").read_text())["cases"]
+    done = {row["name"] for row in rows}
     for listed in read_set(args.set):
         if args.only is not None and not set(args.only) & set(listed["label"].split("+")):
+            continue
+        if case_name(listed) in done:
             continue
         path, measured = blind_copy(listed, args.data)
         case_started = time.perf_counter()

@@ -4,6 +4,7 @@ The bare loop builds the plant once (add_scene, the same contact settings) and p
 Simulator.AdvanceTo frame by frame, reading nothing back; the wrapper rolls the same tosses out through
 DrakeEngine.rollouts with one and with two worker processes (their start-up included in a first, untimed call).
 python benchmarks/drake_rollout.py [--tosses 40] [--frames 140] [--repeats 3]
+python benchmarks/drake_rollout.py --segments --frames 16   # the diagnosis' short segments: every 16th frame a start
 """
 
 from __future__ import annotations
@@ -52,11 +53,19 @@ def main() -> None:
     parser.add_argument("--tosses", type=int, default=40)
     parser.add_argument("--frames", type=int, default=140)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--segments", action="store_true", help="start a toss at every --frames-th recorded frame, not only the first"
+    )
     args = parser.parse_args()
     dataset = read_recordings(REPO_ROOT / "assets" / "contactnets_cube", ["test"])
     split = dataset.split("test")
     count = min(args.tosses, split.n_trajectories)
-    poses0, velocities0 = split.poses[:count, 0], split.velocities[:count, 0]
+    starts = np.arange(0, split.n_frames - args.frames, args.frames) if args.segments else np.array([0])
+    poses0 = split.poses[:count, starts].reshape(-1, *split.poses.shape[2:])
+    velocities0 = split.velocities[:count, starts].reshape(-1, *split.velocities.shape[2:])
+    recorded = np.isfinite(poses0).all(axis=(1, 2)) & np.isfinite(velocities0).all(axis=(1, 2))
+    poses0, velocities0 = poses0[recorded], velocities0[recorded]
+    count = len(poses0)
     engine = DrakeEngine()
     parameters = engine.from_values(
         {"object_friction_0": 0.3, "floor_friction": 0.3, "point_stiffness": 1e4, "hunt_crossley_dissipation": 1.0}, 1

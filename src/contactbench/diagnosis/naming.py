@@ -61,8 +61,11 @@ def name_effects(steps: Diagnosis, base: Hypothesis, base_values: np.ndarray) ->
             current_train,
             ", ".join(f"{e.name} {s:.5f}" for s, e in screened),
         )
+        # The front runners by the screen, and every effect a model-free measurement speaks for (an apparent gravity
+        # or a drag in free flight): its bar is that measurement, which the screen's train loss does not see.
+        front = [item for rank, item in enumerate(screened) if rank < steps.budget.front_runners or item[1].measured]
         fitted = []
-        for screened_loss, effect in screened[: steps.budget.front_runners]:
+        for screened_loss, effect in front:
             trial = current.with_effect(effect)
             trial_values, train_loss = steps.train_fit.fit_effect(
                 trial, trial.start(current, values), len(effect.parameters), steps.budget.lsq_iterations
@@ -95,7 +98,7 @@ def name_effects(steps: Diagnosis, base: Hypothesis, base_values: np.ndarray) ->
                 record["delta_bic"],
                 "passes" if record["passes"] else "no",
             )
-        for screened_loss, effect in screened[steps.budget.front_runners :]:
+        for screened_loss, effect in (item for item in screened if item not in front):
             records.append(
                 {
                     "name": effect.name,
@@ -114,8 +117,8 @@ def name_effects(steps: Diagnosis, base: Hypothesis, base_values: np.ndarray) ->
         best = max(passing, key=lambda item: item[0]["val_improvement"])
         # The effects the val data cannot tell from the best: paired against it, trajectory by trajectory. Not
         # only passing ones: a rival may miss significance against the base and still fit val as well as the best
-        # (a cube's true rolling friction, 5.1% with a CI from -1.7% as cubes seldom roll, beside an inertia
-        # that passed at 6.6% and was named). Free flight tells a tie apart where it measures one of them.
+        # (a cube's true rolling friction, insignificant as cubes seldom roll, beside an inertia that passed and was
+        # named). Free flight tells a tie apart where it measures one of them.
         tied = [
             item
             for item in fitted
@@ -137,7 +140,7 @@ def name_effects(steps: Diagnosis, base: Hypothesis, base_values: np.ndarray) ->
         chosen[0]["chosen"] = True
         _, current, values, _, _ = chosen
         # Converge the chosen model before the next round, so that a further effect must explain what this one
-        # cannot, not merely let the base parameters move on (every refit alone gained ~3% on the real cube).
+        # cannot, not merely let the base parameters move on (a refit alone gains on its own).
         values, current_train = steps.train_fit.least_squares(current, values, steps.budget.lsq_iterations)
         current_val = steps.val_losses(current, values)
     if len(current.effects) > 1:
@@ -190,7 +193,7 @@ def refit_control(
 ) -> None:
     """Judge a passing candidate again against the model without it, refitted from the candidate's own values of
     the shared parameters: what the effect gained by letting the base parameters move on is not the effect (null
-    datasets named effects at physically null values that "closed" 5-13% this way)."""
+    datasets named effects at physically null values that "closed" more than the margin this way)."""
     control_values, control_train = steps.train_fit.least_squares(
         current, current.start(trial, trial_values), steps.budget.lsq_iterations
     )
@@ -216,7 +219,7 @@ def refit_control(
 def require_more_than_special_cases(steps: Diagnosis, fitted: list[tuple]) -> None:
     """A general effect passes only where it is significantly better (Decision.significant) than its own special
     case fitted in the same round: wind that gains nothing on air drag is air drag (an octahedron's true drag once
-    passed as a 1.5 cm/s wind, 5.08% against drag's 4.72% under the 5% margin)."""
+    passed as a slow wind, just over the margin where the drag alone fell just under it)."""
     by_name = {item[0]["name"]: item for item in fitted}
     for record, trial, trial_values, val, _ in fitted:
         special = by_name.get(SPECIAL_CASES.get(record["name"], ""))
