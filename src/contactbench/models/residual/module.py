@@ -1,7 +1,10 @@
 """The residual model in Lightning: SysID fits MuJoCo first, then an MLP learns the impulse that corrects its steps.
 
 Fitting runs in two stages inside one `trainer.fit`. Stage one (`on_fit_start`, once: a resumed run finds its result
-in the checkpoint) is `model=sysid`'s search with the same budget and seed: NGOpt on train, restart chosen on val.
+in the checkpoint) is `model=sysid`'s search with the same budget and seed: NGOpt on train, restart chosen on val. A
+finished `model=sysid` run of the same settings in the same run tree (`sysid_runs`: paths.log_dir's run index, as a
+sweep leaves it) gives its selected parameters instead, read from its fitted.json (stage_one.py); one log line says
+which, and fitted.json's `sysid_run` names the run taken (null: searched here).
 Stage two trains the correction on rollouts: windows of `unroll` frames from recorded train states are rolled out
 by the corrected MuJoCo and scored frame by frame with equation (1)'s terms; the gradient is the adjoint of MuJoCo's
 finite-difference linearisation (`rollout_loss`). Inputs are standardised with train statistics kept as buffers, and
@@ -45,7 +48,7 @@ from contactbench import rotations
 from contactbench.config import generations
 from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.base import ContactModule
-from contactbench.models.residual import correction
+from contactbench.models.residual import correction, stage_one
 from contactbench.models.residual.contact_model import ResidualContactModel
 from contactbench.models.residual.correction import Bodies, Predictor
 from contactbench.models.residual.through_mjx import MjxResidualWindows
@@ -115,6 +118,7 @@ class ResidualModule(ContactModule):
         gradient: str = "linearised",
         solver_iterations: int = 10,
         truncation: int | None = None,
+        sysid_runs: str | None = None,
     ):
         super().__init__()
         if gradient not in GRADIENTS:
@@ -148,6 +152,7 @@ class ResidualModule(ContactModule):
         self._jacobian_data: mujoco.MjData | None = None
         self._mjx_windows: MjxResidualWindows | None = None
         self.skipped_batches = 0
+        self.sysid_run: str | None = None  # the finished model=sysid run stage one took (None: searched here)
 
     # ------------------------------------------------------------ stage one: SysID, then statistics
 
@@ -180,7 +185,21 @@ class ResidualModule(ContactModule):
             self.target_std.copy_(torch.as_tensor(wanted.std(axis=0)).clamp_min(STD_FLOOR))
 
     def _identify(self) -> np.ndarray:
-        """The SysID stage: model=sysid's search with the same settings, in a trainer of its own."""
+        """The SysID stage: a finished model=sysid run's selection where one of the same settings is in the run tree,
+        else model=sysid's search with the same settings."""
+        h = self.hparams
+        fields = stage_one.sysid_module_fields(h.sysid, h.seed, h.nthread, h.substeps)
+        run_dir = self.trainer.default_root_dir if self._trainer is not None else None
+        found = stage_one.finished_sysid_run(h.sysid_runs, stage_one.own_signature(run_dir), fields, self.space.names)
+        if isinstance(found, stage_one.Reused):
+            log.info("residual: stage one took the SysID fit of %s (same settings; its search not repeated)", found.run)
+            self.sysid_run = str(found.run)
+            return np.array([found.parameters[name] for name in self.space.names], dtype=np.float64)
+        log.info("residual: stage one runs SysID's search (%s)", found)
+        return self._search()
+
+    def _search(self) -> np.ndarray:
+        """model=sysid's search with the same settings, in a trainer of its own."""
         settings = self.hparams.sysid
         search = SysIDModule(
             self.dataset,
@@ -384,9 +403,17 @@ class ResidualModule(ContactModule):
     def to_contact_model(self) -> ResidualContactModel:
         return self._contact_model(self.predict if self.corrects else None)
 
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["residual_sysid_run"] = self.sysid_run  # a string or None: loads with weights_only=True
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        run = checkpoint.get("residual_sysid_run")
+        self.sysid_run = run if isinstance(run, str) else None
+
     def fitted_summary(self) -> dict:
         return {
             "parameters": self.space.describe(self.identified),
+            "sysid_run": self.sysid_run,
             "val_pos_err_sysid": float(self.sysid_val_pos_err),
             "val_pos_err_corrected": float(self.val_pos_err),
             "correction_used": self.corrects,
