@@ -25,11 +25,19 @@ def cube():
     return read_recordings("assets/contactnets_cube", ["val"])
 
 
-def _parameters(name: str, friction: float, effects: SceneEffects):
+@pytest.fixture(scope="module")
+def elbow():
+    return read_recordings("assets/contactnets_elbow", ["val"])
+
+
+def _parameters(name: str, friction: float, effects: SceneEffects, n_bodies: int = 1):
     if name == "bullet":
-        return BulletParameters((friction,), (0.0,), effects=effects)
+        return BulletParameters((friction,) * n_bodies, (0.0,) * n_bodies, effects=effects)
     return replace(
-        engine("drake").default_parameters(1), object_friction=(friction,), floor_friction=friction, effects=effects
+        engine("drake").default_parameters(n_bodies),
+        object_friction=(friction,) * n_bodies,
+        floor_friction=friction,
+        effects=effects,
     )
 
 
@@ -37,11 +45,17 @@ def _both(scene, effects: SceneEffects, poses, velocities, frames: int, friction
     """The same toss in MuJoCo and in the named engine: poses [T, K, 7] each."""
     mujoco = engine("mujoco").rollouts(scene)
     other = engine(name).rollouts(scene, nthread=1)
+    n_bodies = scene.n_bodies
     try:
         in_mujoco = mujoco.simulate(
-            [ContactParameters((friction,), friction, None, None, effects=effects)], poses, velocities, frames
+            [ContactParameters((friction,) * n_bodies, friction, None, None, effects=effects)],
+            poses,
+            velocities,
+            frames,
         ).poses[0, 0]
-        in_other = other.simulate([_parameters(name, friction, effects)], poses, velocities, frames).poses[0, 0]
+        in_other = other.simulate([_parameters(name, friction, effects, n_bodies)], poses, velocities, frames).poses[
+            0, 0
+        ]
     finally:
         other.close()
     return in_mujoco, in_other
@@ -71,6 +85,21 @@ def test_free_flight_with_an_effect_follows_mujocos(cube, effects, name):
     assert size > 1e-3  # the effect changes the flight
     assert np.abs(in_mujoco[..., :3] - in_bullet[..., :3]).max() < 0.05 * size
     assert _angle(in_mujoco, in_bullet) < 0.05 * size
+
+
+@pytest.mark.parametrize("name", ["bullet", "drake"])
+def test_a_hinged_pair_in_wind_flies_as_in_mujoco(elbow, name):
+    """Drag acts on a hinge's child as on its parent: the real elbow, raised clear of the floor, tumbling."""
+    split = elbow.split("val")
+    poses, velocities = split.poses[:1, 1].copy(), split.velocities[:1, 1].copy()  # frame 0 has no velocity
+    poses[..., 2] += 2.0
+    effects = SceneEffects(fluid_density=50.0, wind=(2.0, -1.0, 0.0))
+    in_mujoco, in_other = _both(elbow, effects, poses, velocities, 40, name=name)
+    plain, _ = _both(elbow, SceneEffects(), poses, velocities, 40)
+    size = max(np.abs(in_mujoco[..., :3] - plain[..., :3]).max(), _angle(in_mujoco, plain))
+    assert size > 1e-3
+    assert np.abs(in_mujoco[..., :3] - in_other[..., :3]).max() < 0.05 * size
+    assert _angle(in_mujoco, in_other) < 0.05 * size
 
 
 @pytest.mark.parametrize("name", ["bullet", "drake"])

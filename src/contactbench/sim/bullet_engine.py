@@ -28,8 +28,8 @@ class BulletEngine(Engine):
     name = "bullet"
 
     def library_effects(self, scene: Scene) -> frozenset[str]:
-        """Every effect; drag and wind act on free bodies only (BulletWorld._push)."""
-        return frozenset(EFFECT_NAMES) - ({"air_drag", "wind"} if scene.joints else set())
+        """Every effect, on free and hinged bodies alike."""
+        return frozenset(EFFECT_NAMES)
 
     def with_effects(
         self,

@@ -194,8 +194,6 @@ class BulletWorld(World):
             return
         scene = articulated(self.scene, parameters.articulation)
         effects = parameters.effects
-        if self.joints and (effects.fluid_density > 0 or any(effects.wind)):
-            raise ContactbenchError("the PyBullet engine applies drag and wind to free bodies only, not to hinged ones")
         compliance = {}
         if parameters.contact_stiffness is not None:
             compliance = {
@@ -340,6 +338,34 @@ class BulletWorld(World):
             )
             pybullet.applyExternalTorque(body, -1, torque.tolist(), pybullet.WORLD_FRAME, physicsClientId=self.client)
 
+    def _push_links(self) -> None:
+        """The drag for the next step on every body of a scene with joints, a tree's base and its links alike, from
+        the inertial frames and centre-of-mass velocities PyBullet reports for each."""
+        client = self.client
+        positions, orientations, linear, spin = [], [], [], []
+        for handle_index, link in self.links:
+            handle = self.bodies[handle_index]
+            if link < 0:
+                position, orientation = pybullet.getBasePositionAndOrientation(handle, physicsClientId=client)
+                velocity, turning = pybullet.getBaseVelocity(handle, physicsClientId=client)
+            else:
+                state = pybullet.getLinkState(
+                    handle, link, computeLinkVelocity=1, computeForwardKinematics=1, physicsClientId=client
+                )
+                position, orientation, velocity, turning = state[0], state[1], state[6], state[7]
+            positions.append(position)
+            orientations.append(orientation)
+            linear.append(velocity)
+            spin.append(turning)
+        frames = rotations.to_matrix(rotations.xyzw_to_wxyz(np.array(orientations)))
+        forces, torques = self.drag.wrenches(frames, np.array(linear), np.array(spin))
+        for (handle_index, link), position, force, torque in zip(self.links, positions, forces, torques):
+            handle = self.bodies[handle_index]
+            pybullet.applyExternalForce(
+                handle, link, force.tolist(), list(position), pybullet.WORLD_FRAME, physicsClientId=client
+            )
+            pybullet.applyExternalTorque(handle, link, torque.tolist(), pybullet.WORLD_FRAME, physicsClientId=client)
+
     def _toss_hinged(self, poses0: np.ndarray, velocities0: np.ndarray, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
         """A toss of a scene with joints: the roots' states and the joints' are read, every child placed on its
         parent by its joint's angle and rate."""
@@ -375,6 +401,8 @@ class BulletWorld(World):
         )
         readings, joint_readings = [], []
         record, record_joints = readings.append, joint_readings.append
+        if self.drag is not None:
+            self._push_links()
         for _ in range(n_steps):
             for i, links, damping in self.damped:
                 rates = [state[1] for state in read_joints(bodies[i], links, physicsClientId=client)]
@@ -386,6 +414,8 @@ class BulletWorld(World):
                 record(read_velocity(body, client))
             for handle, links in jointed:
                 record_joints(read_joints(handle, links, physicsClientId=client))
+            if self.drag is not None:
+                self._push_links()
         states = engine_states(readings, n_steps, len(bodies))
         base, base_velocity = recorded_motion(states, base_poses[:, 3:])
         if not self.mesh_frames_inertial:

@@ -300,10 +300,11 @@ class DrakeEngine(Engine):
     name = "drake"
 
     def library_effects(self, scene: Scene) -> frozenset[str]:
-        """Gravity, the floor's pose, the bodies' centre of mass and inertia, and drag in moving air (free bodies);
-        Drake's contact has no anisotropic, rolling or torsional friction."""
-        modelled = {"gravity_scale", "floor_offset", "floor_tilt", "com_offset", "inertia_mismatch"}
-        return frozenset(modelled | (set() if scene.joints else {"air_drag", "wind"}))
+        """Gravity, the floor's pose, the bodies' centre of mass and inertia, and drag in moving air; Drake's contact
+        has no anisotropic, rolling or torsional friction."""
+        return frozenset(
+            {"gravity_scale", "floor_offset", "floor_tilt", "com_offset", "inertia_mismatch", "air_drag", "wind"}
+        )
 
     def with_effects(
         self,

@@ -146,35 +146,37 @@ def add_hinges(plant: MultibodyPlant, scene: Scene) -> None:
 
 
 class FluidDrag(LeafSystem):
-    """The inertia-box drag in moving air (sim/effects.InertiaBoxDrag, as PyBullet's world applies it) on the plant's
-    free bodies, through its applied spatial-force input."""
+    """The inertia-box drag in moving air (sim/effects.InertiaBoxDrag, as PyBullet's world applies it) on every body
+    of the plant, free or on a joint, through its applied spatial-force input."""
 
     def __init__(self, plant: MultibodyPlant, scene: Scene, effects: SceneEffects):
         LeafSystem.__init__(self)
         self._coms, axes, moments = inertial_frames(scene, effects)
         self._axes = rotations.to_matrix(axes)  # [K, 3, 3] principal axes in the body frame
         self._drag = InertiaBoxDrag(scene, effects, moments)
-        bodies = [plant.GetBodyByName(f"body{k}") for k in range(scene.n_bodies)]
-        self._indices = [body.index() for body in bodies]
-        self._positions = [body.floating_positions_start() for body in bodies]
-        self._velocities = [plant.num_positions() + body.floating_velocities_start_in_v() for body in bodies]
+        self._plant = plant
+        self._bodies = [plant.GetBodyByName(f"body{k}") for k in range(scene.n_bodies)]
+        # The bodies' poses and velocities from the state by the plant's own kinematics, in a context of its own.
+        self._kinematics = plant.CreateDefaultContext()
         self._state = self.DeclareVectorInputPort("state", plant.num_positions() + plant.num_velocities())
         self.DeclareAbstractOutputPort(
             "spatial_forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]), self._forces
         )
 
     def _forces(self, context, output) -> None:
-        state = self._state.Eval(context)
-        quaternions = np.array([state[start : start + 4] for start in self._positions])
-        rotation = rotations.to_matrix(quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True))
-        spin = np.array([state[start : start + 3] for start in self._velocities])
-        origin = np.array([state[start + 3 : start + 6] for start in self._velocities])
+        plant, kinematics = self._plant, self._kinematics
+        plant.SetPositionsAndVelocities(kinematics, self._state.Eval(context))
+        poses = [plant.EvalBodyPoseInWorld(kinematics, body) for body in self._bodies]
+        velocities = [plant.EvalBodySpatialVelocityInWorld(kinematics, body) for body in self._bodies]
+        rotation = np.array([pose.rotation().matrix() for pose in poses])
+        spin = np.array([velocity.rotational() for velocity in velocities])
+        origin = np.array([velocity.translational() for velocity in velocities])
         linear = origin + np.cross(spin, np.einsum("kij,kj->ki", rotation, self._coms))  # the centres of mass'
         world_forces, world_torques = self._drag.wrenches(rotation @ self._axes, linear, spin)
         forces = []
-        for index, com, force, torque in zip(self._indices, self._coms, world_forces, world_torques):
+        for body, com, force, torque in zip(self._bodies, self._coms, world_forces, world_torques):
             applied = ExternallyAppliedSpatialForce()
-            applied.body_index = index
+            applied.body_index = body.index()
             applied.p_BoBq_B = com
             applied.F_Bq_W = SpatialForce(torque, force)
             forces.append(applied)
@@ -182,7 +184,7 @@ class FluidDrag(LeafSystem):
 
 
 def add_fluid_drag(builder: DiagramBuilder, plant: MultibodyPlant, scene: Scene, effects: SceneEffects) -> None:
-    """FluidDrag on the finalized plant's free bodies (none without a fluid)."""
+    """FluidDrag on the finalized plant's bodies (none without a fluid)."""
     if effects.fluid_density <= 0:
         return
     drag = builder.AddSystem(FluidDrag(plant, scene, effects))
