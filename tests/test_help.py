@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
@@ -82,6 +83,31 @@ def test_generate_help_lists_only_what_it_can_generate(helps):
 def test_diagnose_help_counts_the_effects_the_library_has(helps):
     counted = re.search(r"library of (\w+) effects", helps["diagnose.py"])
     assert counted and counted.group(1) == number_word(len(EFFECT_NAMES)), helps["diagnose.py"]
+
+
+# One command line per entry point, and the run folder its help must describe (the help's outputs/... template).
+COMMANDS = {
+    "train.py": ["model=sysid", "variant=frictioncubes_0.5"],
+    "evaluate.py": ["model=sysid", "variant=frictioncubes_0.5"],
+    "generate.py": ["variant=frictioncubes_0.5"],
+    "diagnose.py": ["recordings=assets/contactnets_cube"],
+}
+
+
+@pytest.mark.parametrize("script", sorted(COMMANDS))
+def test_help_names_the_folder_a_run_writes(helps, script):
+    """The help's `outputs/...` (or `data/...`) folder, its <placeholders> any text, is where Hydra puts the run."""
+    from hydra import compose, initialize_config_dir
+
+    text = re.sub(r"\s*\n\s*", "", helps[script])  # a folder may break across lines
+    (template,) = re.findall(r"(?:outputs|data)/(?:<[^>]*>|[^\s;()<])+/", text)
+    pattern = "".join(".+" if part.startswith("<") else re.escape(part) for part in re.split(r"(<[^>]+>)", template))
+    name = script.removesuffix(".py")
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose(config_name=name, overrides=COMMANDS[script], return_hydra_config=True)
+    folder = Path(cfg.dataset.path if script == "generate.py" else cfg.hydra.run.dir)
+    shown = folder.relative_to(REPO_ROOT).as_posix() + "/"
+    assert re.fullmatch(pattern, shown), f"{script} --help says {template}; the run goes to {shown}"
 
 
 @pytest.mark.parametrize("number, word", [(1, "one"), (9, "nine"), (10, "ten"), (12, "twelve"), (22, "22")])

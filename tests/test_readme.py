@@ -397,6 +397,24 @@ def test_the_readme_names_every_model_and_what_make_main_fits():
     assert [name.strip() for name in fitted.group(2).split(",")] == main
 
 
+@pytest.mark.parametrize("experiment", ["matrix", "sensitivity"])
+def test_the_model_count_a_sweep_s_comment_states_is_its_experiment_s(experiment):
+    """`python train.py -m experiment=sensitivity   # five models x ...` and `make matrix   # ...: ten models x ...`,
+    wherever the docs comment one: the count is conf/experiment/<experiment>.yaml's."""
+    sweep = OmegaConf.load(CONFIG_DIR / "experiment" / f"{experiment}.yaml").hydra.sweeper.params
+    command = "make matrix " if experiment == "matrix" else f"experiment={experiment} "
+    claims = [
+        (page.name, found)
+        for page in PAGES
+        for line in page.read_text().splitlines()
+        if line.startswith(("make matrix ", "python train.py -m ")) and command in line + " " and "ARGS=" not in line
+        for found in re.findall(r"#.*?\b(\w+) models\b", line)
+    ]
+    assert claims, f"no comment counts {experiment}'s models"
+    wrong = [(name, found) for name, found in claims if number(found) != len(sweep.model.split(","))]
+    assert not wrong, f"conf/experiment/{experiment}.yaml sweeps {sweep.model}; the docs say {wrong}"
+
+
 @pytest.mark.slow
 def test_the_test_count_the_readme_states_is_about_right():
     (stated,) = [int(found) for found in TESTS_STATED.findall(README.read_text())]
