@@ -1,5 +1,6 @@
 """The report of every run below a folder: results.md and results.html (the tables, the paper's figures, Table 3,
-renders) and results/<budget>.csv, one row a cell with its 95% intervals."""
+the paper's findings judged one by one, renders), results/<budget>.csv, one row a cell with its 95% intervals, and
+results/<budget>_claims.md, the findings' table judged from that file alone (claims.py)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from pathlib import Path
 from contactbench import atomic
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.cells import cells_of
+from contactbench.evaluation.claims import write_claims
 from contactbench.evaluation.collect import collect, expected_cells, once_each
 from contactbench.evaluation.figures import draw_all, load_test_runs, observed_plainly
 from contactbench.evaluation.renders import render_report
@@ -51,6 +53,7 @@ def write_report(root: Path, renders: bool = True, results: Path | None = None) 
     rendered = render_report(root, root / "renders") if renders else []
     written = write_results(cells_of(every_row), results)
     files = ", ".join(f"`{_shown(path, root)}`" for path in written)
+    claims = [write_claims(path) for path in written]
     sections = [
         f"# Results under {root}\n\nEvery metrics.json below this folder ({len(found)}); figures from the test "
         "split; tables and figures of the recordings as they are, except the sensitivity section. One row a cell "
@@ -71,6 +74,8 @@ def write_report(root: Path, renders: bool = True, results: Path | None = None) 
         "## Table 3, recomputed\n",
         importance_sentence(seeded),
         table3_markdown(runs),
+        "## The paper's findings, side by side\n",
+        *[f"{text}\nAlso in `{_shown(path, root)}`.\n" for path, text in claims],
         "## Renders (Figs. 4 and 6: final poses, ground truth grey; matplotlib, headless)\n",
         *[f"![{path.stem}](renders/{path.name})\n" for path in rendered],
         *(
