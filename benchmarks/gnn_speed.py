@@ -11,12 +11,22 @@ edges of a 3-body scene; it is for timing only (the motion is not physical where
     python benchmarks/gnn_speed.py                       # paper network (latent 128, 10 steps), batch 64
     python benchmarks/gnn_speed.py --latent-size 64 --message-passing-steps 5 --threads 1
     python benchmarks/gnn_speed.py --rigid --latent-size 64 --message-passing-steps 5 --batch-size 128 --threads 1
+
+Timed under the CPU kernels training uses (contactbench/models/gnn/cpu_kernels.py). --compare-kernels times the
+training step under each named mode instead, each in its own process (torch fixes its kernels once per process),
+the modes alternated --repeats times, and prints each mode's median step time and its ratio to the first mode's:
+    python benchmarks/gnn_speed.py --rigid --latent-size 48 --message-passing-steps 3 --batch-size 128 --threads 1 \
+        --compare-kernels native avx2 compatible
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
+import statistics
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -24,6 +34,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from contactbench.config import REPO_ROOT
+from contactbench.models.gnn import cpu_kernels
 from contactbench.models.gnn.graph import build_edges
 from contactbench.models.gnn.module import GNNDataModule, GNNModule
 from contactbench.protocol import Context
@@ -142,6 +153,29 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def compare_kernels(modes: list[str], repeats: int, argv: list[str]) -> None:
+    """Training-step time of the first scene under each kernel mode, each run in a fresh process, the modes
+    alternated so that a load on shared cores falls on all of them alike."""
+    seconds: dict[str, list[float]] = {mode: [] for mode in modes}
+    for _ in range(repeats):
+        for mode in modes:
+            env = {key: value for key, value in os.environ.items() if key not in ("ATEN_CPU_CAPABILITY", "MKL_CBWR")}
+            env[cpu_kernels.MODE_VARIABLE] = mode
+            done = subprocess.run(
+                [sys.executable, __file__, *argv, "--training-only"], env=env, capture_output=True, text=True
+            )
+            if done.returncode != 0:
+                raise SystemExit(f"{mode}: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ''}")
+            seconds[mode].append(float(done.stdout.split()[-1]))
+    base = statistics.median(seconds[modes[0]])
+    for mode in modes:
+        median = statistics.median(seconds[mode])
+        print(
+            f"kernels {mode:10s}: training step {median * 1e3:7.1f} ms (median of {repeats}), "
+            f"ratio to {modes[0]} {median / base:.2f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -163,12 +197,39 @@ def main() -> None:
     parser.add_argument("--rollout-frames", type=int, default=50)
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's choice)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument(
+        "--compare-kernels",
+        nargs="+",
+        metavar="MODE",
+        choices=list(cpu_kernels.MODES),
+        help=f"time training steps under each of these CPU kernel modes ({', '.join(cpu_kernels.MODES)})",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="with --compare-kernels: processes per mode")
+    parser.add_argument("--training-only", action="store_true", help=argparse.SUPPRESS)  # one mode's process
     args = parser.parse_args()
+    if args.compare_kernels:
+        argv = [arg for arg in sys.argv[1:] if arg not in args.compare_kernels and arg != "--compare-kernels"]
+        compare_kernels(args.compare_kernels, args.repeats, argv)
+        return
+    kernels = cpu_kernels.pin()  # before the first tensor: torch fixes its kernels there
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     single = read_recordings(args.dataset, splits=["train", "val"])
+    if args.training_only:
+        module = GNNModule(
+            single,
+            latent_size=args.latent_size,
+            message_passing_steps=args.message_passing_steps,
+            rigid=args.rigid,
+            velocity_history=3 if args.rigid else 5,
+        ).to(args.device)
+        module.setup("fit")
+        samples, _ = training_samples_per_second(module, single, args.batch_size, args.train_steps)
+        print(args.batch_size / samples)  # seconds per training step
+        return
     print(
+        f"kernels {kernels['mode']} (ATen {kernels['aten']}, MKL branch {kernels['mkl_cbwr']}), "
         f"device {args.device}, {torch.get_num_threads()} threads, latent {args.latent_size}, "
         f"{args.message_passing_steps} message-passing steps, batch {args.batch_size}, "
         f"{'rigid (gnn)' if args.rigid else 'paper (gnn_paper)'}"

@@ -18,10 +18,15 @@ from omegaconf import DictConfig, OmegaConf
 from contactbench import atomic, folders, restore, tracking
 from contactbench.errors import ContactbenchError
 from contactbench.models.base import ContactModel, ContactModule, require_contract
+from contactbench.models.gnn import cpu_kernels
 from contactbench.models.progress import FitProgress, Setting
 from contactbench.recordings import Recordings
 
 log = logging.getLogger(__name__)
+
+# The same CPU kernels on every machine, for every torch model (models/gnn/cpu_kernels.py; importing it pinned them
+# already): runs.py imports this module before any tensor is made, in train.py and evaluate.py alike.
+CPU_KERNELS = cpu_kernels.pin()
 
 
 def fit(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger) -> ContactModel:
@@ -70,7 +75,13 @@ def fit_lightning(cfg: DictConfig, dataset: Recordings, output_dir: Path, logger
     module = restore.load_module(cfg, dataset, output_dir / "checkpoints" / checkpoint)
     atomic.write_json(
         output_dir / "fitted.json",
-        {"model": cfg.model.name, "checkpoint": checkpoint, **chosen, **module.fitted_summary()},
+        {
+            "model": cfg.model.name,
+            "checkpoint": checkpoint,
+            **chosen,
+            **module.fitted_summary(),
+            "cpu_kernels": cpu_kernels.in_effect(),
+        },
     )
     return module.to_contact_model()
 
