@@ -249,3 +249,22 @@ def test_the_papers_figures_leave_out_what_is_not_a_paper_variant(tmp_path, monk
     assert "friction=0.3 (not a paper variant)" in drawn["error_over_time_frictioncubes.png"]
     (said,) = [line for line in section(text, "Figures").splitlines() if line.startswith("Left out")]
     assert "frictioncubes friction=0.3 (not a paper variant)" in said
+
+
+def test_a_figure_of_two_budgets_draws_a_line_per_model_and_budget(tmp_path, monkeypatch):
+    from contactbench.evaluation import figures
+
+    write_row(tmp_path, "q/test", model="sysid", budget="quick", task="train", pos_err=0.15)
+    write_row(tmp_path, "s/test", model="sysid", budget="smoke", task="train", pos_err=0.25)
+    legends, save = {}, figures.save_figure
+
+    def recorded_save(figure, path):
+        legends[path.name] = sorted(
+            text.get_text() for axis in figure.axes if axis.get_legend() for text in axis.get_legend().get_texts()
+        )
+        return save(figure, path)
+
+    monkeypatch.setattr(figures, "save_figure", recorded_save)
+    write_report(tmp_path, renders=False)
+    assert legends["error_over_time_frictioncubes.png"] == ["sysid (quick)", "sysid (smoke)"]
+    assert legends["frictioncubes.png"] == ["sysid (quick)", "sysid (smoke)"]

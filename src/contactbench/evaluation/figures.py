@@ -383,13 +383,28 @@ def in_paper_figures(summary: dict) -> bool:
     return named_variants.paper_variant(summary["dataset"], summary["variant"]) is not False
 
 
+def named_by_budget(runs: list[Run]) -> list[Run]:
+    """The runs, each model named with its budget ('sysid (smoke)') when they hold more than one budget: a figure then
+    draws a smoke and a quick fit as two lines, not one of them in the other's place."""
+    if len({run.summary.get("budget") for run in runs}) < 2:
+        return runs
+    named = []
+    for run in runs:
+        model = f"{run.summary['model']} ({run.summary.get('budget') or 'unknown'})"
+        named.append(Run({**run.summary, "model": model}, run.per_trajectory, run.path))
+    return named
+
+
 def draw_all(
     root: Path, out_dir: Path, every_run: list[Run] | None = None
 ) -> tuple[list[Path], dict[str, dict[str, str]]]:
     """Every figure the test runs under root allow (or those of every_run: the report's, each score once) and
     Table 3 over them. The paper's numbered figures and Table 3 hold the benchmark's variants only; the error over
-    time and the sensitivity figures draw every variant, a custom one marked "not a paper variant"."""
+    time and the sensitivity figures draw every variant, a custom one marked "not a paper variant". Runs of several
+    budgets are drawn as a line per model and budget."""
     every_run = load_test_runs(root) if every_run is None else every_run
+    table = importance_table([r for r in every_run if observed_plainly(r.summary) and in_paper_figures(r.summary)])
+    every_run = named_by_budget(every_run)
     plain = [run for run in every_run if observed_plainly(run.summary)]
     runs = [run for run in plain if in_paper_figures(run.summary)]
     drawn = [sweep_figure(runs, dataset, out_dir / f"{dataset}.png") for dataset in SWEEPS]
@@ -421,7 +436,7 @@ def draw_all(
         for axis_key in OBSERVATION_AXES:
             name = f"sensitivity_{axis_key}_{dataset}_{variant}".replace("=", "").replace(".", "p")
             drawn.append(sensitivity_figure(every_run, dataset, variant, axis_key, out_dir / f"{name}.png"))
-    return [path for path in drawn if path is not None], importance_table(runs)
+    return [path for path in drawn if path is not None], table
 
 
 def new_figure(**kwargs) -> Figure:
