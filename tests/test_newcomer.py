@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import falling_cubes
 from hydra import compose, initialize_config_dir
-from omegaconf import open_dict
+from omegaconf import OmegaConf, open_dict
 
 from contactbench import runs
 from contactbench.config import CONFIG_DIR
@@ -126,6 +126,11 @@ def test_a_generated_dataset_is_said_in_one_line_and_a_custom_value_is_marked(tm
     scored = [record.getMessage() for record in caplog.records if "pos_err" in record.getMessage()]
     assert len(scored) == 1 and "friction=0.3 (not a paper variant)" in scored[0]
     assert document["paper_variant"] is False and document["budget"] == "quick" and document["task"] == "evaluate"
+    from contactbench.evaluation.renders import rerun
+
+    (run_dir / ".hydra").mkdir()  # what a Hydra job records (a composed config here)
+    OmegaConf.save(cfg, run_dir / ".hydra" / "config.yaml")
+    assert rerun([run_dir]).label == "frictioncubes friction=0.3 (not a paper variant)"  # a render's title
 
 
 # ---------------------------------------------------------------- the report says what it mixes

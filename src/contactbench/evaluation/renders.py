@@ -18,7 +18,7 @@ from matplotlib.colors import to_rgb
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from omegaconf import OmegaConf
 
-from contactbench import restore
+from contactbench import restore, variants
 from contactbench.evaluation.figures import TRUTH_COLOUR, model_colour, new_figure, observed_plainly, save_figure
 from contactbench.ground import Ground
 from contactbench.kinematics import world_vertices
@@ -54,7 +54,7 @@ def rerun(train_dirs: list[Path], trajectories: int = 3) -> Rollouts:
         predicted[cfg.model.name] = model.rollout(dataset.scene, make_context(test, dataset.dt, cfg.context_frames))
         truth_split = observed.truth.split("test").select(chosen)
         truth, lengths = truth_split.poses, truth_split.lengths
-        label = f"{cfg.dataset.name} {cfg.dataset.variant}"
+        label = f"{cfg.dataset.name} {variants.label(cfg.dataset.name, cfg.dataset.variant)}"
         meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
         dt, floor_z, ground = dataset.dt, dataset.floor_z, Ground.of(dataset)
     return Rollouts(label, truth, lengths, predicted, meshes, dt, floor_z, ground)
