@@ -138,3 +138,16 @@ def test_help_answers_in_under_two_seconds_before_any_heavy_import():
     )
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, cwd=REPO_ROOT)
     assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout[-2000:] + done.stderr[-2000:]
+
+
+def test_help_into_a_closed_pipe_ends_quietly():
+    """`python train.py --help | head -1`: the reader is gone before the help is printed; no BrokenPipeError."""
+    child = subprocess.Popen(
+        [sys.executable, str(REPO_ROOT / "train.py"), "--help"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=REPO_ROOT,
+    )
+    child.stdout.close()  # the reader has gone before the child prints
+    _, stderr = child.communicate(timeout=120)
+    assert b"Traceback" not in stderr and b"BrokenPipe" not in stderr, stderr.decode()[-2000:]

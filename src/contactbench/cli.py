@@ -8,6 +8,7 @@ import functools
 import logging
 import os
 import re
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -100,6 +101,9 @@ def check_command_line(task: str, argv: list[str] | None = None) -> None:
 
     words = sys.argv[1:] if argv is None else argv
     arguments, unknown = get_args_parser().parse_known_args(words)
+    if argv is None and (arguments.help or arguments.hydra_help or arguments.cfg or arguments.info):
+        # what is printed and nothing run: `--help | head` ends quietly at a closed pipe, as other commands do
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     unwritten = _not_key_value(task, words, arguments.overrides, unknown)
     if unwritten:
         _refuse(unwritten)
