@@ -14,7 +14,7 @@ main: $(VENV)/.installed
 
 # The whole benchmark at one budget, conf/experiment/matrix.yaml: {mujoco_default, sysid, sysid_mjx, gnn, hybrid, residual, and the
 # other engines untuned and identified: bullet_default, sysid_bullet, drake_default, sysid_drake} x 34
-# synthetic variants (the paper's 22 and the 12 of its future work) + the real cube, scored on val and test, then the report. The hybrid model skips multi-body
+# synthetic variants (the paper's 22 and the 12 of its future work) + the real cube and elbow, scored on val and test, then the report. The hybrid model skips multi-body
 # variants with one line each; `make matrix SEEDS=3` fits every cell with seeds 0, 1, 2 and the report shows their mean
 # and 95% interval; the report writes the repository's results/$(BUDGET).csv, one row a cell (the committed results).
 # `make matrix BUDGET=paper ARGS='hydra/launcher=cluster hydra.launcher.partition=<yours>'` sends the same

@@ -20,7 +20,7 @@ A case's size is the mean position change of the bodies' centres, in object widt
 null twin. For named cases it also reports the fraction of the excess held-out error closed, (base - augmented) /
 (base - base of the null twin). Prints the confusion matrix and a table; writes proof.json and proof.md under --out.
 
-    python benchmarks/diagnosis_proof.py --set independent_1   # one set (16-23 cases, 15-25 min on 2 cores)
+    python benchmarks/diagnosis_proof.py --set independent_1   # one set (16-23 cases, 7-50 min each on 2 cores)
     python benchmarks/diagnosis_proof.py --set held_out_15 --only floor_tilt
     python benchmarks/diagnosis_proof.py --set independent_5 --engines mujoco drake   # as if PyBullet did not exist
 """

@@ -150,3 +150,24 @@ def test_a_tuned_setting_applies_to_its_model_and_dataset_only_and_evaluate_find
     assert signature_key(train) == signature_key(evaluate)  # evaluate.py finds what train.py fitted
     noise_grid = compose("train", overrides=["model=gnn"]).model.choose_on_val.module.noise_std
     assert list(noise_grid) == [1.0e-4, 2.0e-4, 4.0e-4]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "skipped"),
+    [
+        (["variant=contactnets_cube"], False),  # a recorded dataset's variant is the dataset itself
+        (["variant=frictioncubes_0.5"], False),
+        (["dataset=frictioncubes", "variant=polyhedra_8"], True),  # -m dataset=a,b 'variant=glob(*)' crosses them
+    ],
+)
+def test_a_sweep_skips_a_variant_of_another_dataset_only(overrides, skipped, hydra_configs):
+    from hydra.core.hydra_config import HydraConfig
+
+    from contactbench.runs import crossed_variant
+
+    cfg = compose("generate", overrides=overrides, return_hydra_config=True)
+    HydraConfig.instance().set_config(cfg)
+    try:
+        assert crossed_variant(cfg) is skipped
+    finally:
+        HydraConfig.instance().cfg = None

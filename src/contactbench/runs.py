@@ -43,7 +43,8 @@ def crossed_variant(cfg: DictConfig) -> bool:
     if not HydraConfig.initialized():
         return False
     variant = HydraConfig.get().runtime.choices.get("variant")
-    if variant in (None, "null") or variant.startswith(f"{cfg.dataset.name}_"):
+    # A recorded dataset's variant is the dataset itself (variant=contactnets_cube)
+    if variant in (None, "null", cfg.dataset.name) or variant.startswith(f"{cfg.dataset.name}_"):
         return False
     log.info("variant %s is not a %s variant: skipped", variant, cfg.dataset.name)
     return True
