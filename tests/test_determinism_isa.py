@@ -90,3 +90,17 @@ def test_a_gnn_fit_gives_the_same_bytes_on_a_cpu_without_avx512(tmp_path):
     there = smoke_fit(tmp_path / "there", MKL_ENABLE_INSTRUCTIONS="AVX2")
     assert len(here) == 5  # three noise settings, the val scores, the kernels
     assert there == here
+
+
+def test_a_cpu_without_avx2_keeps_torchs_own_kernels(monkeypatch):
+    """ATen takes ATEN_CPU_CAPABILITY on trust: pinning AVX2 on a CPU without it would stop the process."""
+    from contactbench.models.gnn import cpu_kernels
+
+    monkeypatch.delenv("ATEN_CPU_CAPABILITY", raising=False)
+    monkeypatch.delenv(cpu_kernels.MODE_VARIABLE, raising=False)
+    monkeypatch.setattr(cpu_kernels, "cpu_has", lambda flag: False)
+    cpu_kernels.pin()
+    assert "ATEN_CPU_CAPABILITY" not in os.environ
+    monkeypatch.setattr(cpu_kernels, "cpu_has", lambda flag: True)
+    cpu_kernels.pin()
+    assert os.environ["ATEN_CPU_CAPABILITY"] == "avx2"

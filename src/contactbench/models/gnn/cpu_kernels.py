@@ -48,6 +48,10 @@ def pin() -> dict:
     """Set the mode's kernel variables where the environment has not, and make torch choose its kernels now.
     Returns what is in effect (`in_effect`)."""
     capability, branch = MODES[mode()]
+    if capability == "avx2" and not cpu_has("avx2"):
+        # ATen takes its variable on trust: AVX2 kernels on a CPU without AVX2 would stop the process
+        log.warning("this CPU has no AVX2: torch keeps its own kernels (%s=avx2 pins AVX2 CPUs only)", MODE_VARIABLE)
+        capability = None
     if capability is not None:
         os.environ.setdefault("ATEN_CPU_CAPABILITY", capability)
     if branch is not None:
@@ -66,6 +70,18 @@ def pin() -> dict:
             wanted,
         )
     return in_effect()
+
+
+def cpu_has(flag: str) -> bool:
+    """Whether the CPU reports an instruction-set flag (Linux's /proc/cpuinfo); True where it cannot be read."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
+            for line in info:
+                if line.startswith("flags"):
+                    return flag in line.split(":", 1)[1].split()
+    except OSError:
+        return True
+    return True
 
 
 def in_effect() -> dict:
