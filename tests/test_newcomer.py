@@ -227,6 +227,9 @@ def test_table3_leaves_out_what_is_not_a_paper_variant(tmp_path):
     table3 = section(text, "Table 3, recomputed")
     assert not re.search(r"^\| mujoco_default \| (Yes|No) \|", table3, re.M)  # one paper variant: nothing to compare
     assert "frictioncubes friction=0.3 (not a paper variant)" in table3
+    with open(tmp_path / "results" / "quick.csv", newline="") as handle:
+        marked = {row["variant"]: row["paper_variant"] for row in csv.DictReader(handle)}
+    assert marked["friction=0.3"] == "no" and marked[next(v for v in marked if v != "friction=0.3")] == "yes"
 
 
 def test_the_papers_figures_leave_out_what_is_not_a_paper_variant(tmp_path, monkeypatch):

@@ -169,14 +169,15 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     metrics = ["pos_err", "rot_err_rad", "floor_penetration_m", "floor_penetration_true_m"]
     metrics += ["interbody_penetration_m", "pairwise_collisions"]
     assert list(rows[0]) == [
-        *["model", "dataset", "variant", "split", "budget", "noise_mm", "frame_stride", "seeds", "tosses"],
+        *["model", "dataset", "variant", "paper_variant", "split", "budget", "noise_mm", "frame_stride", "seeds"],
+        "tosses",
         *[f"{metric}{suffix}" for metric in metrics for suffix in ("", "_low", "_high", "_interval")],
         "pairwise_collisions_true_max",
         *["commit", "date", "wall_s"],
     ]
     for row in rows:
-        where = ("frictioncubes", "friction=0", "smoke", "4")
-        assert tuple(row[key] for key in ("dataset", "variant", "budget", "tosses")) == where
+        where = ("frictioncubes", "friction=0", "yes", "smoke", "4")
+        assert tuple(row[key] for key in ("dataset", "variant", "paper_variant", "budget", "tosses")) == where
         assert row["commit"] == "unknown"  # runs do not record it yet
         for metric in ("pos_err", "rot_err_rad", "floor_penetration_m"):
             low, mean, high = (float(row[f"{metric}{suffix}"]) for suffix in ("_low", "", "_high"))

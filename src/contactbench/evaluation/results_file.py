@@ -10,11 +10,24 @@ from pathlib import Path
 
 import numpy as np
 
-from contactbench import atomic
+from contactbench import atomic, variants
 from contactbench.evaluation.cells import METRICS, Cell
 
 UNKNOWN = "unknown"
-KEYS = ["model", "dataset", "variant", "split", "budget", "noise_mm", "frame_stride", "seeds", "tosses"]
+# paper_variant: yes where conf/variant/ names the variant, no for a custom one (friction=0.3), empty for a recorded
+# dataset (no variants)
+KEYS = [
+    "model",
+    "dataset",
+    "variant",
+    "paper_variant",
+    "split",
+    "budget",
+    "noise_mm",
+    "frame_stride",
+    "seeds",
+    "tosses",
+]
 RECORDED = ["commit", "date", "wall_s"]
 # The most distinct body pairs any recorded test toss of the cell touched (Fig. 7b's claim is about a maximum, which
 # no mean and interval can say); empty with one body.
@@ -69,6 +82,7 @@ def row_of(cell: Cell) -> dict[str, str]:
         "model": cell.model,
         "dataset": cell.dataset,
         "variant": cell.variant,
+        "paper_variant": {True: "yes", False: "no", None: ""}[variants.paper_variant(cell.dataset, cell.variant)],
         "split": cell.split,
         "budget": cell.budget or UNKNOWN,
         "noise_mm": f"{cell.noise_mm:g}",
