@@ -3,6 +3,8 @@ and an engine that refuses the scene is skipped in one line."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -81,6 +83,18 @@ def test_pybullet_made_tosses_are_best_fitted_by_pybullet_and_mujoco_misses_at_i
     assert sum(share["share"] for share in phases.values()) == pytest.approx(against["val"]["improvement"])
     assert f"{best.label} closes" in section["finding"] and "confirmed on test" in section["finding"]
     assert set(seconds) >= {"contact_law_s", contact_law.fit_seconds_key(best.label)}
+    # Naming on a stepped engine fits on the train tosses its contact law was fitted on; val stays whole.
+    steps.budget = dataclasses.replace(steps.budget, law_trajectories=5)
+    train, val = steps.train_fit.simulator.segments, steps.val_fit.simulator.segments
+    steps.use_engine("bullet", frozenset({"gravity_scale"}))
+    try:
+        kept = steps.train_fit.simulator.segments
+        assert steps.train_split.n_trajectories == 5 and set(kept.trajectory.tolist()) == set(range(5))
+        np.testing.assert_array_equal(kept.truth, train.truth[train.trajectory < 5])
+        np.testing.assert_array_equal(steps.val_fit.simulator.segments.truth, val.truth)
+        assert set(steps.library) == {"gravity_scale"}
+    finally:
+        steps.close()
 
 
 def test_an_engine_that_refuses_the_scene_is_skipped_in_one_line(tmp_path):

@@ -71,6 +71,8 @@ BUDGET_RULES = {
             "val_segments",
             "segment_frames",
             "fit_trajectories",
+            "law_trajectories",
+            "law_evaluations",
             "base_evaluations",
             "batch",
             "lsq_iterations",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,6 +39,17 @@ class Segments:
     @property
     def count(self) -> int:
         return len(self.start)
+
+    def of_trajectories(self, count: int) -> Segments:
+        """The segments of the first `count` trajectories."""
+        kept = self.trajectory < count
+        return replace(
+            self,
+            **{
+                name: getattr(self, name)[kept]
+                for name in ("trajectory", "start", "poses0", "velocities0", "truth", "phase", "airborne")
+            },
+        )
 
 
 def cut_segments(dataset: Recordings, split: Split, length: int, first_frame: int = 1) -> Segments:

@@ -33,8 +33,8 @@ class Budget:
     max_effects: int = 2
     bootstrap: int = 1000
     open_world_terms: int = 8  # most terms of the open-world correction (diagnosis.open_world)
-    # The other engines' contact laws (diagnosis.contact_law): train trajectories their fits see, and global-search
-    # evaluations per engine and contact option.
+    # The other engines' contact laws (diagnosis.contact_law): train trajectories their fits see (the first of the
+    # diagnosis' own; naming on one of them fits on the same), and global-search evaluations per engine and option.
     law_trajectories: int = 60
     law_evaluations: int = 160
 
@@ -116,12 +116,20 @@ class Diagnosis:
         return hypothesis, values
 
     def use_engine(self, engine_name: str, effects: frozenset[str]) -> None:
-        """Every later fit on this engine (the same segments), with the library cut to the effects it models."""
+        """Every later fit on this engine, with the library cut to the effects it models: on the same val segments,
+        and on the train segments of the first law_trajectories train tosses, which its contact law was fitted on
+        (an engine other than MuJoCo is stepped from Python, each evaluation many times MuJoCo's)."""
         self.close()
         self.engine_name = engine_name
+        if engine_name != "mujoco":
+            kept = min(self.budget.law_trajectories, self.train_split.n_trajectories)
+            self.train_split = self.train_split.select(np.arange(kept))
+            segments = self.train_fit.simulator.segments.of_trajectories(kept)
+        else:
+            segments = self.train_fit.simulator.segments
         self.train_fit, self.val_fit = (
-            ResidualFit(SegmentSimulator(self.dataset, fit.simulator.segments, engine_name=engine_name), fit.scale)
-            for fit in (self.train_fit, self.val_fit)
+            ResidualFit(SegmentSimulator(self.dataset, fit_segments, engine_name=engine_name), fit.scale)
+            for fit, fit_segments in ((self.train_fit, segments), (self.val_fit, self.val_fit.simulator.segments))
         )
         self._test = self._halves = None
         self.library = {name: effect for name, effect in self.library.items() if name in effects}
