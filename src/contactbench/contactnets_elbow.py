@@ -64,7 +64,8 @@ TENSOR_HEADER = (
 )
 SOURCE = (
     "Real tosses of a two-link articulated 'elbow' (two 10 x 5 x 5 cm bars, 0.37 kg each, on a pin hinge) tracked at "
-    "148 Hz, published in DAIRLab/dair_pll assets/contactnets_elbow (commit b5783254) with its URDF "
+    "148 Hz, published in DAIRLab/dair_pll assets/contactnets_elbow (the upstream commit: docs/RECORDINGS.md) "
+    "with its URDF "
     "assets/contactnets_elbow.urdf. BSD 3-Clause license, copyright 2022 Dynamic Autonomy and Intelligent Robotics "
     "Lab. Converted by contactbench.contactnets_elbow: bars' inertia as uniform solids (the URDF gives a cube's), "
     "dt 1/148 s, the publisher's velocities (backward differences) with the angular one turned into the world frame."
