@@ -216,15 +216,21 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     single = read_recordings(args.dataset, splits=["train", "val"])
-    if args.training_only:
+
+    def built(dataset):
+        """The GNN as the command line sets it, on the dataset's scene, ready to train."""
         module = GNNModule(
-            single,
+            dataset,
             latent_size=args.latent_size,
             message_passing_steps=args.message_passing_steps,
             rigid=args.rigid,
             velocity_history=3 if args.rigid else 5,
         ).to(args.device)
         module.setup("fit")
+        return module
+
+    if args.training_only:
+        module = built(single)
         samples, _ = training_samples_per_second(module, single, args.batch_size, args.train_steps)
         print(args.batch_size / samples)  # seconds per training step
         return
@@ -236,14 +242,7 @@ def main() -> None:
     )
     for n_bodies in args.bodies:
         dataset = single if n_bodies == 1 else side_by_side(single, n_bodies)
-        module = GNNModule(
-            dataset,
-            latent_size=args.latent_size,
-            message_passing_steps=args.message_passing_steps,
-            rigid=args.rigid,
-            velocity_history=3 if args.rigid else 5,
-        ).to(args.device)
-        module.setup("fit")
+        module = built(dataset)
         samples, bare = training_samples_per_second(module, dataset, args.batch_size, args.train_steps)
         frames = rollout_frames_per_second(module, dataset, args.rollout_trajectories, args.rollout_frames)
         flops = step_flops(module, dataset, args.batch_size)
