@@ -27,3 +27,17 @@ def test_a_sweep_runs_through_submitit_local(tmp_path):
     metrics = sorted((tmp_path / "sweep").rglob("test/metrics.json"))
     assert len(metrics) == 2
     assert list((tmp_path / "sweep" / ".submitit").iterdir())  # submitit ran the jobs, not Hydra's basic launcher
+
+
+def test_stepped_engines_run_inside_the_local_launchers_workers(tmp_path):
+    # joblib's workers set multiprocessing's default start method to loky's; the stepped engines' worker processes
+    # (and the generator's) must still start there, or every toss of a PyBullet or Drake row is NaN and skipped.
+    result = smoke_train_sweep(
+        ["hydra/launcher=local", "model=bullet_default,drake_default", "variant=frictioncubes_0"],
+        tmp_path / "sweep",
+        tmp_path,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = sorted((tmp_path / "sweep").rglob("test/metrics.json"))
+    assert len(metrics) == 2, result.stderr[-3000:]

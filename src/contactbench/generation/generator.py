@@ -26,6 +26,7 @@ from contactbench.generation.solids import SOLID_NAMES, solid
 from contactbench.generation.terrain import terrain
 from contactbench.ground import Ground
 from contactbench.meshes import Mesh
+from contactbench.processes import standard_start_method
 from contactbench.recordings import write_recordings
 from contactbench.scene import FORMAT, SCENE_VERSION, VERSION, Recordings, Split, Static, static_entries
 from contactbench.sim.bullet_world import BODY_DYNAMICS_OVERRIDES, ENGINE_STATE_SIZE, BulletSettings, recorded_motion
@@ -156,6 +157,7 @@ def worker_context() -> multiprocessing.context.BaseContext:
     once; workers fork from it in milliseconds, so every later variant in the same run starts its pool almost
     for free. Platforms without one get "spawn".
     """
+    standard_start_method()
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")

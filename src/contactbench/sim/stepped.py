@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from contactbench.errors import ContactbenchError
+from contactbench.processes import standard_start_method
 from contactbench.scene import Scene
 from contactbench.sim.mujoco_scene import body_frame_velocities
 from contactbench.sim.rollout import Rollouts, SimulationResult, available_cores, unstable_frames
@@ -88,6 +89,7 @@ def toss_all(world: World, items: Sequence[Item], n_steps: int) -> tuple[np.ndar
 
 def worker_context() -> multiprocessing.context.BaseContext:
     """Workers never fork the caller, which may hold threads (torch, Hydra launchers): a fork server, else spawn."""
+    standard_start_method()
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     return multiprocessing.get_context("forkserver")
