@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 from matplotlib.colors import to_hex
 from test_pipeline import smoke_train_sweep
 
@@ -173,12 +174,21 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
         "tosses",
         *[f"{metric}{suffix}" for metric in metrics for suffix in ("", "_low", "_high", "_interval")],
         "pairwise_collisions_true_max",
+        *["pos_err_vs_best", "rot_err_rad_vs_best"],
         *["commit", "date", "wall_s"],
     ]
+    # which differences are not significant, from the file alone: the twin ties the model it copies (one of the two
+    # is the best, by name where the means are equal); the model a width worse on every toss is worse
+    ranked = {(row["model"], row["split"]): row["pos_err_vs_best"] for row in rows}
+    for split in ("test", "val"):
+        assert {ranked["mujoco_default", split], ranked["mujoco_twin", split]} == {"best", "tie"}
+        assert ranked["mujoco_worse", split] == "worse"
     for row in rows:
         where = ("frictioncubes", "friction=0", "yes", "smoke", "4")
         assert tuple(row[key] for key in ("dataset", "variant", "paper_variant", "budget", "tosses")) == where
-        assert row["commit"] == "unknown"  # runs do not record it yet
+        # each run recorded where it came from: this checkout's commit, when it finished, how long it took
+        assert re.fullmatch(r"[0-9a-f]{40}(\+modified)?", row["commit"]), row["commit"]
+        assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", row["date"]) and float(row["wall_s"]) > 0
         for metric in ("pos_err", "rot_err_rad", "floor_penetration_m"):
             low, mean, high = (float(row[f"{metric}{suffix}"]) for suffix in ("_low", "", "_high"))
             assert low <= mean <= high and low < high, (row["model"], metric)
@@ -257,3 +267,15 @@ def test_sweep_figure_titles_fit_and_models_keep_their_colours(tmp_path, monkeyp
     (figure,) = drawn
     assert not titles_outside(figure)
     assert line_colours(figure) == {"hybrid": to_hex("tab:brown"), "gnn": to_hex("tab:red")}
+
+
+def test_a_run_folders_provenance_that_is_not_an_object_is_one_error_naming_the_file(tmp_path):
+    from contactbench import provenance
+    from contactbench.errors import ContactbenchError
+
+    assert provenance.read(tmp_path) == {}  # an older run wrote none: the results file says 'unknown'
+    for text in ("{", "[1, 2]", "\xff"):
+        (tmp_path / "provenance.json").write_text(text, encoding="latin-1")
+        with pytest.raises(ContactbenchError, match="provenance.json: ") as raised:
+            provenance.read(tmp_path)
+        assert "\n" not in str(raised.value)

@@ -12,7 +12,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from contactbench import atomic, checks, fitting, folders, restore, tracking, variants
+from contactbench import atomic, checks, fitting, folders, provenance, restore, tracking, variants
 from contactbench.config import interactive
 from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
@@ -159,6 +159,7 @@ def write_scene(model: ContactModel, dataset: Recordings, output_dir: Path, logg
 def train(cfg: DictConfig, output_dir: Path) -> float:
     """Fit the model on train (selecting on val), score it on val, and on test when cfg.test. Returns val pos_err."""
     output_dir = Path(output_dir)
+    stopwatch = provenance.Stopwatch()
     checks.check(cfg)
     folders.check(cfg, output_dir, "train")  # before anything is written: a refused run leaves the folder as it was
     pl.seed_everything(cfg.seed, workers=True)
@@ -175,6 +176,7 @@ def train(cfg: DictConfig, output_dir: Path) -> float:
         results = {"val": _score_and_write(cfg, model, observed, "val", output_dir / "val", logger)}
         if cfg.test:
             results["test"] = _score_and_write(cfg, model, observed, "test", output_dir / "test", logger)
+        stopwatch.write(output_dir)
         status = "success"
     except BaseException:
         folders.release(output_dir)  # a failure before anything resumable was written leaves the folder unclaimed
@@ -203,6 +205,7 @@ def _train_dir(cfg: DictConfig) -> Path:
 def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
     """Score an analytical model, or the model a train run fitted, on cfg.split; writes metrics.json."""
     output_dir = Path(output_dir)
+    stopwatch = provenance.Stopwatch()
     checks.check(cfg)
     train_dir = _train_dir(cfg)
     scored = folders.scored_signature(cfg, train_dir if (train_dir / "fitted.json").is_file() else None)
@@ -216,6 +219,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> dict:
         model = restore.load_fitted(cfg, observed.dataset, train_dir)
         document = _score_and_write(cfg, model, observed, cfg.split, output_dir, logger)
         folders.record_scores(output_dir, scored)
+        stopwatch.write(output_dir)
         status = "success"
     finally:
         tracking.close_logger(logger, status)

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 
 import numpy as np
 
-from contactbench import atomic, variants
-from contactbench.evaluation.cells import METRICS, Cell
+from contactbench import atomic, provenance, variants
+from contactbench.evaluation.cells import METRICS, Cell, difference
 
 UNKNOWN = "unknown"
 # paper_variant: yes where conf/variant/ names the variant, no for a custom one (friction=0.3), empty for a recorded
@@ -32,10 +31,16 @@ RECORDED = ["commit", "date", "wall_s"]
 # The most distinct body pairs any recorded test toss of the cell touched (Fig. 7b's claim is about a maximum, which
 # no mean and interval can say); empty with one body.
 PAIRS_MAX = "pairwise_collisions_true_max"
+# Each cell against the lowest mean among the models scored on the same tosses: "best", "tie" where the paired 95%
+# interval of the difference covers 0, "worse" where it does not; empty where no other model shares its tosses. A
+# table written from this file alone can then say which differences are not significant.
+RANKED = ("pos_err", "rot_err_rad")
+VERSUS_BEST = tuple(f"{metric}_vs_best" for metric in RANKED)
 HEADER = [
     *KEYS,
     *(f"{metric}{suffix}" for metric in METRICS for suffix in ("", "_low", "_high", "_interval")),
     PAIRS_MAX,
+    *VERSUS_BEST,
     *RECORDED,
 ]
 
@@ -46,13 +51,10 @@ def _number(value: float | None) -> str:
 
 
 def _recorded(row: dict, key: str):
-    """What the run recorded about itself: in its metrics.json, else its fitted.json; None where neither says."""
+    """What the run recorded about itself (provenance.json in its folder); None where it did not."""
     if row.get(key) is not None:
         return row[key]
-    fitted = row["_run"] / "fitted.json" if row.get("_run") is not None else None
-    if fitted is not None and fitted.is_file():
-        return json.loads(fitted.read_text()).get(key)
-    return None
+    return provenance.read(row["_run"]).get(key) if row.get("_run") is not None else None
 
 
 def _provenance(cell: Cell) -> dict[str, str]:
@@ -77,7 +79,28 @@ def _most_pairs(cell: Cell) -> str:
     return f"{values.max():g}" if values.size else ""
 
 
-def row_of(cell: Cell) -> dict[str, str]:
+def versus_best(cells: list[Cell]) -> list[dict[str, str]]:
+    """Per cell (in order), its VERSUS_BEST columns among the cells scored on the same tosses."""
+    ranks: list[dict[str, str]] = [dict.fromkeys(VERSUS_BEST, "") for _ in cells]
+    groups: dict[tuple, list[int]] = {}
+    for index, cell in enumerate(cells):
+        at = (cell.dataset, cell.variant, cell.split, cell.budget, cell.noise_mm, cell.frame_stride)
+        groups.setdefault(at, []).append(index)
+    for members in groups.values():
+        for metric, column in zip(RANKED, VERSUS_BEST):
+            measured = [index for index in members if cells[index].mean(metric) is not None]
+            if len(measured) < 2:
+                continue
+            best = min(measured, key=lambda index: (cells[index].mean(metric), cells[index].model))
+            ranks[best][column] = "best"
+            for index in measured:
+                if index != best:
+                    interval = difference(cells[index], cells[best], metric)
+                    ranks[index][column] = "" if interval is None else "tie" if interval.covers(0.0) else "worse"
+    return ranks
+
+
+def row_of(cell: Cell, versus: dict[str, str] | None = None) -> dict[str, str]:
     row = {
         "model": cell.model,
         "dataset": cell.dataset,
@@ -97,14 +120,14 @@ def row_of(cell: Cell) -> dict[str, str]:
         row[f"{metric}_high"] = _number(None if interval is None else interval.high)
         row[f"{metric}_interval"] = "" if interval is None else interval.over
     row[PAIRS_MAX] = _most_pairs(cell)
-    return {**row, **_provenance(cell)}
+    return {**row, **(versus or dict.fromkeys(VERSUS_BEST, "")), **_provenance(cell)}
 
 
 def csv_text(cells: list[Cell]) -> str:
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=HEADER, lineterminator="\n")
     writer.writeheader()
-    writer.writerows(row_of(cell) for cell in cells)
+    writer.writerows(row_of(cell, versus) for cell, versus in zip(cells, versus_best(cells)))
     return buffer.getvalue()
 
 
