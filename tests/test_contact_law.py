@@ -115,3 +115,31 @@ def test_an_engine_that_refuses_the_scene_is_skipped_in_one_line(tmp_path):
     (skipped,) = section["skipped"]
     assert skipped["engine"] == "drake" and "non-convex" in skipped["reason"] and "\n" not in skipped["reason"]
     assert section["finding"] == "mujoco is the only contact law that simulates this scene"
+
+
+def test_names_are_fitted_on_the_best_law_that_models_what_the_contact_signatures_measure():
+    from contactbench.diagnosis.free_flight import INCONCLUSIVE, MEASURED
+    from contactbench.diagnosis.pipeline import LIBRARY_SIGNATURES, naming_base
+
+    law = dataclasses.make_dataclass("Law", ["engine", "label"])
+    ranked = [law("drake", "Drake"), law("bullet", "PyBullet rigid"), law("mujoco", "MuJoCo")]
+    modelled = {"drake": {"air_drag", "wind"}, "bullet": {"air_drag", "anisotropic_friction"}, "mujoco": {"air_drag"}}
+
+    def signatures(measured: str | None) -> dict:
+        return {
+            "signatures": {
+                name: {"speaks_to": speaks_to, "evidence": MEASURED if name == measured else INCONCLUSIVE}
+                for name, speaks_to in (("anisotropy", "anisotropic_friction"), ("spin", "torsional_friction"))
+                + (("rolling", "rolling_friction"),)
+            }
+        }
+
+    assert set(LIBRARY_SIGNATURES) == {"anisotropy", "spin", "rolling"}
+    # nothing measured: the best law on val
+    assert naming_base(ranked, modelled, signatures(None)) == (ranked[0], set())
+    # a measured anisotropy Drake cannot express: the runner-up that models it
+    assert naming_base(ranked, modelled, signatures("anisotropy")) == (ranked[1], {"anisotropic_friction"})
+    # measured physics no engine models: the best law again, and the signature left to say it is unexplained
+    assert naming_base(ranked, modelled, signatures("rolling"))[0] is ranked[0]
+    # a best law that models no library effect in the scene is passed over
+    assert naming_base(ranked, {**modelled, "drake": set()}, signatures(None))[0] is ranked[1]

@@ -66,8 +66,8 @@ def lines(section: dict | None, naming_base: str, seconds: dict) -> list[str]:
     ]
     if naming_base != section["best"]:
         out += [
-            f"The effects below are named on {naming_base}, the best law whose engine models the library here "
-            f"({section['best']} models none of it yet).",
+            f"The effects below are named on {naming_base}: "
+            f"{section.get('naming_base_why') or section['best'] + ' models no library effect in this scene'}.",
             "",
         ]
     if section.get("not_modelled_on_naming_base"):

@@ -70,6 +70,20 @@ def _unexplained(open_world_record: dict, predictor: dict, contact: dict, candid
     return None
 
 
+def naming_base(ranked: list, modelled: dict[str, set], contact: dict) -> tuple:
+    """The law names are fitted on, and the library effects the contact signatures measure model-free: the best law
+    on val whose engine models every such effect, else the best that models any library effect. A law a little
+    better on val cannot name a measured anisotropy its engine has no model of (Drake's point contact has none); the
+    runner-up that models it can, and a signature the best base cannot express would otherwise be reported as
+    unexplained physics."""
+    signatures = contact["signatures"]
+    measured = {
+        signatures[name]["speaks_to"] for name in LIBRARY_SIGNATURES if signatures[name]["evidence"] == MEASURED
+    }
+    usable = [law for law in ranked if modelled[law.engine]]
+    return next((law for law in usable if measured <= modelled[law.engine]), usable[0]), measured
+
+
 def run_diagnosis(
     dataset: Recordings,
     budget: Budget | None = None,
@@ -94,11 +108,17 @@ def run_diagnosis(
     steps.timings |= law_seconds
     log.info("contact law: %s", law["finding"])
     modelled = {c.engine: engine(c.engine).library_effects(dataset) for c in ranked}
-    naming_law = next(c for c in ranked if modelled[c.engine])
+    naming_law, measured = naming_base(ranked, modelled, steps.contact)
     if naming_law.engine != "mujoco":
         steps.use_engine(naming_law.engine, modelled[naming_law.engine])
         base, base_values = steps.fit_base(naming_law.hypothesis, naming_law.values)
     law["naming_base"] = naming_law.label
+    if naming_law is not ranked[0]:
+        law["naming_base_why"] = (
+            f"the contact signatures measure {', '.join(sorted(measured))}, which {ranked[0].label} does not model"
+            if measured
+            else f"{ranked[0].label} models no library effect in this scene"
+        )
     law["not_modelled_on_naming_base"] = sorted(set(EFFECT_NAMES) - modelled[naming_law.engine])
     located = locate.locate(steps, base, base_values)
     clock = time.perf_counter()
