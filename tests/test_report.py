@@ -279,3 +279,48 @@ def test_a_run_folders_provenance_that_is_not_an_object_is_one_error_naming_the_
         with pytest.raises(ContactbenchError, match="provenance.json: ") as raised:
             provenance.read(tmp_path)
         assert "\n" not in str(raised.value)
+
+
+def _results_row(model: str, dataset: str, pos: float, rank: str, **extra) -> dict:
+    from contactbench.evaluation.results_file import HEADER
+
+    row = dict.fromkeys(HEADER, "")
+    row.update(model=model, dataset=dataset, variant="real", split="test", budget="quick", noise_mm="0", seeds="0")
+    row.update(pos_err=pos, pos_err_low=pos - 0.01, pos_err_high=pos + 0.01, pos_err_vs_best=rank)
+    row.update(rot_err_rad=0.5, rot_err_rad_low=0.4, rot_err_rad_high=0.6, rot_err_rad_vs_best="tie")
+    row.update(commit="a" * 40, date="2026-11-27T17:00:00Z", wall_s="120.0", **extra)
+    return row
+
+
+def test_the_readme_headline_is_written_from_the_results_file_alone(tmp_path):
+    from contactbench.evaluation import headline
+    from contactbench.evaluation.results_file import HEADER
+
+    rows = [
+        _results_row("sysid", "contactnets_cube", 0.26, "worse"),
+        _results_row("sysid_drake", "contactnets_cube", 0.145, "best"),
+        _results_row("gnn", "contactnets_cube", 0.15, "tie"),
+        _results_row("gnn", "contactnets_elbow", 0.70, "best"),
+        _results_row("gnn", "frictioncubes", 0.01, "best"),  # a synthetic variant: not in the headline
+    ]
+    results, readme = tmp_path / "quick.csv", tmp_path / "README.md"
+    with open(results, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=HEADER, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    readme.write_text(f"# title\n\n{headline.BEGIN}\nwritten by hand\n{headline.END}\n\nthe rest\n")
+    args = ["--results", str(results), "--readme", str(readme)]
+    assert headline.main([*args, "--check"]) == 1  # a hand-written table is not the file's
+    assert headline.main(args) == 0 and headline.main([*args, "--check"]) == 0
+    text = readme.read_text()
+    assert text.startswith("# title\n\n") and text.endswith("\n\nthe rest\n") and "written by hand" not in text
+    lines = [line for line in text.splitlines() if line.startswith("| `")]
+    # the fixed model order, the best bold, a tie marked, a missing run a dash, intervals beside every mean
+    assert [line.split("`")[1] for line in lines] == ["sysid", "sysid_drake", "gnn"]
+    assert lines[1].startswith("| `sysid_drake` | **0.145** [0.135–0.155] | 0.50 ≈ [0.40–0.60] | – | – |")
+    assert "0.150 ≈ [0.140–0.160]" in lines[2] and "**0.700** [0.690–0.710]" in lines[2]
+    assert "0.010" not in text and "commit aaaaaaaaaaaa" in text and "2026-11-27" in text
+    # a results file without the ranking columns is one line naming it
+    with open(results, "w", newline="") as handle:
+        handle.write("model,dataset\nsysid,contactnets_cube\n")
+    assert headline.main(args) == 2 and readme.read_text() == text
