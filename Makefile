@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN = $(VENV)/bin
 
-.PHONY: main test lint benchmarks matrix slurm-check
+.PHONY: main test lint benchmarks matrix headline slurm-check
 
 # The embedded default, conf/experiment/main.yaml: one generated variant and the two real datasets (cube, elbow), every model at
 # budget=quick, scored on val and test, then one results table.
@@ -26,6 +26,13 @@ matrix: $(VENV)/.installed
 	$(BIN)/python generate.py -m 'variant=glob(*)'
 	$(BIN)/python train.py -m experiment=matrix budget=$(BUDGET) $(if $(filter-out 1,$(SEEDS)),'seed=range($(SEEDS))') $(ARGS)
 	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/$(BUDGET) --results results
+
+# The README's headline in one sitting, conf/experiment/real.yaml: every model on the real cube and elbow at budget=quick
+# (into the matrix's folder), the report's results/quick.csv, and the README's table written from that file alone.
+headline: $(VENV)/.installed
+	$(BIN)/python train.py -m experiment=real $(ARGS)
+	$(BIN)/python -m contactbench.evaluation.report outputs/matrix/quick --results results
+	$(BIN)/python -m contactbench.evaluation.headline
 
 # A real single-node Slurm on this machine (root; apt-get install slurm-wlm munge): a small matrix through
 # hydra/launcher=cluster, one GNN job killed with scontrol requeue and resumed, the report counting every job done.
