@@ -233,7 +233,7 @@ def test_table3_leaves_out_what_is_not_a_paper_variant(tmp_path):
 
 
 def test_the_papers_figures_leave_out_what_is_not_a_paper_variant(tmp_path, monkeypatch):
-    from contactbench.evaluation import figures
+    from contactbench.evaluation import figures, plotting
 
     for value in (0.0, 0.5, 0.3):
         variant = f"friction={value:g}"
@@ -242,7 +242,7 @@ def test_the_papers_figures_leave_out_what_is_not_a_paper_variant(tmp_path, monk
     save, sweep = figures.save_figure, figures.sweep_figure
 
     def recorded_save(figure, path):
-        drawn[path.name] = [title.get_text().replace("\n", " ") for title in figures.titles(figure)]
+        drawn[path.name] = [title.get_text().replace("\n", " ") for title in plotting.titles(figure)]
         return save(figure, path)
 
     def recorded_sweep(runs, dataset, path):

@@ -15,7 +15,8 @@ from test_pipeline import smoke_train_sweep
 
 from contactbench.evaluation import figures, renders
 from contactbench.evaluation.collect import expected_cells
-from contactbench.evaluation.figures import Run, error_over_time_figure, model_colour, sweep_figure, titles
+from contactbench.evaluation.figures import Run, error_over_time_figure, sweep_figure
+from contactbench.evaluation.plotting import MODEL_COLOURS, model_colour, titles
 from contactbench.evaluation.report import write_report
 
 
@@ -241,7 +242,7 @@ def test_error_over_time_greys_out_frames_with_under_a_quarter_of_the_tosses(tmp
     assert not titles_outside(figure)  # the long title is wrapped, not cut off
     # a model of one's own gets one colour that is nobody else's, the same in every figure
     assert to_hex(coloured[0].get_color()) == to_hex(model_colour("sysid"))
-    assert model_colour("my_own_model") == model_colour("my_own_model") not in figures.MODEL_COLOURS.values()
+    assert model_colour("my_own_model") == model_colour("my_own_model") not in MODEL_COLOURS.values()
 
 
 def test_sweep_figure_titles_fit_and_models_keep_their_colours(tmp_path, monkeypatch):

@@ -9,7 +9,7 @@ import numpy as np
 
 from contactbench.diagnosis.phases import PHASES, label_phases
 from contactbench.diagnosis.segments import COMPONENTS
-from contactbench.evaluation.figures import new_figure, save_figure
+from contactbench.evaluation.plotting import new_figure, save_figure
 from contactbench.models.analytical import EngineContactModel
 from contactbench.protocol import make_context
 

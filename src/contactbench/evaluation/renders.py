@@ -19,7 +19,8 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from omegaconf import OmegaConf
 
 from contactbench import restore, variants
-from contactbench.evaluation.figures import TRUTH_COLOUR, model_colour, new_figure, observed_plainly, save_figure
+from contactbench.evaluation.figures import observed_plainly
+from contactbench.evaluation.plotting import TRUTH_COLOUR, model_colour, new_figure, save_figure
 from contactbench.ground import Ground
 from contactbench.kinematics import world_vertices
 from contactbench.meshes import Mesh
