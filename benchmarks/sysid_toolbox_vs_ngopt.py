@@ -25,7 +25,8 @@ from omegaconf import DictConfig
 
 from contactbench import runs
 from contactbench.config import CONFIG_DIR, REPO_ROOT
-from contactbench.models.sysid.mujoco_toolbox import EquationOneResiduals, ToolboxSysIDModule, fit, start_vector
+from contactbench.models.sysid.mujoco_toolbox import ToolboxSysIDModule, fit, start_vector
+from contactbench.models.sysid.uncertainty import EquationOneResiduals
 from contactbench.recordings import read_recordings
 
 VARIANTS = ("contactnets_cube", "frictioncubes_0.5")

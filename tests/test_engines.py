@@ -42,6 +42,14 @@ def test_sysid_and_the_default_of_an_engine_run_the_pipeline(name, tmp_path):
     val_pos_err = runs.train(cfg, run_dir)
     fitted = json.loads((run_dir / "fitted.json").read_text())
     assert list(fitted["parameters"]) == search_space(name, 1).names
+    # each identified parameter in physical units with its interval: null for a discrete choice, else around it
+    uncertainty = fitted["uncertainty"]["parameters"]
+    assert list(uncertainty) == search_space(name, 1).names
+    for parameter, entry in uncertainty.items():
+        assert entry["value"] == pytest.approx(fitted["parameters"][parameter])
+        if entry["interval"] is not None:
+            assert entry["unit"] is not None and entry["interval"][0] <= entry["value"] <= entry["interval"][1]
+    assert any(entry["interval"] is not None for entry in uncertainty.values())
     assert (run_dir / SCENE_FILES[name]).is_file()
     document = runs.evaluate(
         compose_config(

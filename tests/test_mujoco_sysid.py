@@ -17,13 +17,9 @@ from contactbench import runs
 from contactbench.config import REPO_ROOT
 from contactbench.errors import ContactbenchError
 from contactbench.models.sysid.module import SysIDDataModule
-from contactbench.models.sysid.mujoco_toolbox import (
-    EquationOneResiduals,
-    LeastSquaresSearch,
-    ToolboxSysIDModule,
-    check_fit_state,
-)
+from contactbench.models.sysid.mujoco_toolbox import LeastSquaresSearch, ToolboxSysIDModule, check_fit_state
 from contactbench.models.sysid.objective import ConfigurationObjective
+from contactbench.models.sysid.uncertainty import EquationOneResiduals
 from contactbench.protocol import make_context
 from contactbench.recordings import read_recordings
 from contactbench.sim.mujoco_scene import ContactParameters

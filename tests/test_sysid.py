@@ -209,3 +209,42 @@ def test_a_killed_search_resumes_bit_identically_from_numbers_only(mujoco_made_c
         resumed_search.results == whole_search.results
     )  # exact floats: recommendations and val losses of both restarts
     assert torch.equal(resumed.selected, whole.selected)
+
+
+def test_the_intervals_of_identified_parameters_follow_the_data_and_skip_what_it_cannot_move():
+    """uncertainty.intervals on residuals linear in the parameters: a parameter the residuals do not depend on, a
+    discrete choice and one its choice leaves unused get none; the others an interval that shrinks with more data."""
+    from contactbench.models.sysid import uncertainty
+    from contactbench.sim.engines import Dimension
+
+    dimensions = (
+        Dimension("object_friction_0", 0.0, 1.0),
+        Dimension("floor_friction", 0.0, 1.0),  # the residuals ignore it
+        Dimension("contact", 0.0, 1.0, choices=("rigid", "compliant")),
+        Dimension("contact_stiffness", 1e3, 1e8, log=True, init=1e5, when=("contact", "compliant")),
+    )
+    vector = np.array([0.4, 0.3, 0.0, 1e5])  # rigid contact: the stiffness does not act
+    rng = np.random.default_rng(0)
+
+    def linear(n: int):
+        noise = rng.normal(0.0, 0.01, n)
+
+        def residuals(x):
+            x = np.asarray(x, float)
+            columns = x.reshape(len(dimensions), -1)
+            out = (columns[0][None, :] - 0.4) * np.linspace(1.0, 2.0, n)[:, None] + noise[:, None]
+            return out[:, 0] if x.ndim == 1 else out
+
+        return residuals
+
+    few, few_covariance = uncertainty.intervals(linear(50), vector, dimensions)
+    many, _ = uncertainty.intervals(linear(5000), vector, dimensions)
+    assert np.isfinite(few[0]) and np.isinf(few[1:]).all()
+    assert 0 < many[0] < few[0] / 4  # 100x the data: about a tenth of the interval
+    assert few_covariance[0, 0] > 0 and np.isnan(few_covariance[2]).all()
+    fitted = uncertainty.summary([d.name for d in dimensions], vector, few, few_covariance, dimensions, 0.95)
+    entries = fitted["uncertainty"]["parameters"]
+    assert entries["object_friction_0"]["unit"] == "1" and entries["contact_stiffness"]["unit"] == "N/m"
+    assert entries["contact"]["unit"] is None and entries["contact"]["interval"] is None
+    assert not entries["contact"]["at_bound"]  # a choice sits on no bound of a range
+    assert entries["floor_friction"]["std"] is None and fitted["covariance"]["matrix"][0][1] is None

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.analytical import EngineContactModel, MujocoContactModel
 from contactbench.models.base import ContactModule
+from contactbench.models.sysid import uncertainty
 from contactbench.models.sysid.objective import ConfigurationObjective
 from contactbench.models.sysid.search_space import search_space
 from contactbench.scene import Recordings
@@ -158,11 +159,34 @@ class SysIDModule(IdentifiedModule):
         stop_recast_threads()
         return {
             **super().fitted_summary(),
+            **self.uncertainty(),
             # NGOpt picks its algorithm from the space, budget and workers alone, never from the seed or the losses:
             # re-created here as the search created it, the choice is the one each restart ran.
             "optimizer": {"name": h.optimizer, "chosen": chosen},
             "versions": package_versions("nevergrad", *ENGINE_PACKAGES.get(h.engine, ())),
         }
+
+    def uncertainty(self) -> dict:
+        """The selected parameters' intervals and covariance (uncertainty.py), from eq. (1)'s residuals on every train
+        toss: P + 1 rollouts of the train split, once, when the fit is written up."""
+        h = self.hparams
+        rollouts = self.rollouts()
+        try:
+            train = uncertainty.EquationOneResiduals(
+                self.dataset,
+                "train",
+                h.context_frames,
+                rollouts,
+                position_exponent=h.position_exponent,
+                unstable_penalty=h.unstable_penalty,
+            )
+            vector = self.selected.cpu().numpy()
+            space = uncertainty.dimensions(h.engine, self.space.n_bodies, self.space.n_joints)
+            residuals = uncertainty.residual_function(train, self.space)
+            interval, covariance = uncertainty.intervals(residuals, vector, space)
+        finally:
+            rollouts.close()
+        return uncertainty.summary(self.space.names, vector, interval, covariance, space, uncertainty.CONFIDENCE)
 
 
 def new_optimizer(module: SysIDModule, restart: int) -> ng.optimizers.base.Optimizer:

@@ -30,110 +30,23 @@ import time
 import numpy as np
 import pytorch_lightning as pl
 import torch
-from mujoco import minimize
 
-from contactbench import rotations
 from contactbench.errors import ContactbenchError, require_positive_integers
+from contactbench.models.sysid import uncertainty
 from contactbench.models.sysid.module import IdentifiedModule, package_versions, save_last_checkpoint, val_subset
-from contactbench.models.sysid.objective import length_groups, subset
-from contactbench.protocol import make_context
+from contactbench.models.sysid.uncertainty import EquationOneResiduals, intervals, summary, toolbox
 from contactbench.recordings import Recordings
-from contactbench.sim import articulation, engines, mujoco_engine
+from contactbench.sim import mujoco_engine
 from contactbench.sim.engines import Dimension
-from contactbench.sim.rollout import Rollouts
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("mujoco", "scipy", "scipy_parallel_fd")  # sysid.optimize's least-squares backends
-UNITS = {  # Table 2c and the articulation in physical units (MuJoCo's direct solref: aref = -k r - b v, per unit mass)
-    "object_friction": "1",
-    "floor_friction": "1",
-    "floor_stiffness": "1/s^2",
-    "floor_damping": "1/s",
-    "joint_damping": "N m s/rad",
-    "joint_friction": "N m",
-    "inertia_scale": "1",
-}
-
-
-def toolbox():
-    """mujoco.sysid, or one line saying how to install it (the package hides a missing extra's ImportError)."""
-    from mujoco import sysid
-
-    if not hasattr(sysid, "optimize"):
-        raise ContactbenchError(
-            "model=mujoco_sysid needs MuJoCo's sysid extra: pip install 'mujoco[sysid]==3.17.0' "
-            "(make main and make test install it)"
-        )
-    return sysid
-
-
-def unit(name: str) -> str:
-    return UNITS[name.rstrip("0123456789").rstrip("_")]
-
-
-class EquationOneResiduals:
-    """Eq. (1) on a split's tosses as least-squares residuals: per scored frame and body, the position offset scaled by
-    (2/w)^(p/2) and the rotation vector from the recorded to the predicted orientation (its norm is eq. (1)'s angle),
-    each toss weighted by 1/sqrt(N x its scored frames). The sum of squares is then the ConfigurationObjective's loss:
-    the mean over tosses of each toss's mean over its frames. An unstable candidate gets a flat residual whose sum of
-    squares is `unstable_penalty`."""
-
-    def __init__(
-        self,
-        dataset: Recordings,
-        split: str,
-        context_frames: int,
-        rollouts: Rollouts,
-        *,
-        position_exponent: int = 2,
-        unstable_penalty: float = 1e3,
-        indices: np.ndarray | None = None,
-    ):
-        recorded = dataset.split(split)
-        context = make_context(recorded, dataset.dt, context_frames)
-        indices = np.arange(len(recorded.poses)) if indices is None else np.asarray(indices)
-        self.context = subset(context, indices)
-        self.truth = recorded.poses[indices]
-        self.rollouts = rollouts
-        self.unstable_penalty = float(unstable_penalty)
-        self.steps = self.context.lengths - self.context.n_context  # scored frames per toss
-        self.groups = length_groups(self.steps)
-        self.position_weight = (2.0 / np.asarray(dataset.widths(), float)) ** (position_exponent / 2)  # [K]
-        self.toss_weight = 1.0 / np.sqrt(len(indices) * self.steps)  # [N]
-        self.size = int(self.steps.sum()) * dataset.n_bodies * 6
-
-    @property
-    def n_trajectories(self) -> int:
-        return len(self.truth)
-
-    def __call__(self, candidates: list) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals [B, size] and whether each candidate was unstable [B], for B parameter sets."""
-        n = self.context.n_context
-        parts, unstable = [], np.zeros(len(candidates), dtype=bool)
-        for group in self.groups:
-            horizon = int(self.steps[group].max())
-            result = self.rollouts.simulate(
-                candidates, self.context.poses[group, -1], self.context.velocities[group, -1], horizon
-            )
-            scored = np.arange(horizon)[None, :] < self.steps[group, None]  # [n, H]
-            truth = self.truth[group, n : n + horizon]  # [n, H, K, 7]
-            with np.errstate(invalid="ignore", over="ignore"):
-                position = (truth[..., :3] - result.poses[..., :3]) * self.position_weight[:, None]
-                relative = rotations.multiply(rotations.conjugate(truth[..., 3:]), result.poses[..., 3:])
-                rotation = rotations.to_rotation_vector(relative)
-                residual = np.concatenate([position, rotation], axis=-1) * self.toss_weight[group, None, None, None]
-            parts.append(residual[:, scored].reshape(len(candidates), -1))  # [B, scored frames x K x 6]
-            unstable |= (result.unstable_frames & scored).any(axis=(1, 2))
-        residuals = np.concatenate(parts, axis=1)
-        unstable |= ~np.isfinite(residuals).all(axis=1)
-        residuals[unstable] = np.sqrt(self.unstable_penalty / self.size)
-        return residuals, unstable
 
 
 def dimensions(n_bodies: int, n_joints: int) -> tuple[Dimension, ...]:
     """SearchSpace's dimensions in its order, with their ranges, scales and starts."""
-    return engines.engine("mujoco").dimensions(n_bodies) + articulation.dimensions(n_joints)
+    return uncertainty.dimensions("mujoco", n_bodies, n_joints)
 
 
 def start_vector(module: ToolboxSysIDModule, restart: int) -> np.ndarray:
@@ -217,41 +130,18 @@ class ToolboxSysIDModule(IdentifiedModule):
 
     def fitted_summary(self) -> dict:
         h = self.hparams
-        names = self.space.names
-        values = self.selected.cpu().numpy()
-        interval = self.selected_interval.cpu().numpy()
-        covariance = self.selected_covariance.cpu().numpy()
-        bounds = [(d.low, d.high) for d in dimensions(self.space.n_bodies, self.space.n_joints)]
-        identifiable = np.isfinite(interval)
-        uncertainty = {}
-        for k, name in enumerate(names):
-            low, high = bounds[k]
-            finite = bool(identifiable[k])
-            uncertainty[name] = {
-                "value": float(values[k]),
-                "unit": unit(name),
-                "std": float(np.sqrt(max(covariance[k, k], 0.0))) if finite else None,
-                # the interval clipped to the searched range: the optimum may sit on a bound
-                "interval": [float(max(values[k] - interval[k], low)), float(min(values[k] + interval[k], high))]
-                if finite
-                else None,
-                "at_bound": bool(np.isclose(values[k], low) or np.isclose(values[k], high)),
-            }
-        # the toolbox's covariance keeps numbers where the data leave a direction free (a clamped zero eigenvalue):
-        # null there, as the interval is
-        matrix = [
-            [float(covariance[i, j]) if identifiable[i] and identifiable[j] else None for j in range(len(names))]
-            for i in range(len(names))
-        ]
         train_loss, iterations, evaluations, seconds = self.selected_record.tolist()
         return {
             **super().fitted_summary(),
             "train_loss": train_loss,
-            "uncertainty": {"confidence": h.confidence, "parameters": uncertainty},
-            "covariance": {
-                "names": names,
-                "matrix": matrix,
-            },
+            **summary(
+                self.space.names,
+                self.selected.cpu().numpy(),
+                self.selected_interval.cpu().numpy(),
+                self.selected_covariance.cpu().numpy(),
+                dimensions(self.space.n_bodies, self.space.n_joints),
+                h.confidence,
+            ),
             "optimizer": {
                 "name": "mujoco.sysid.optimize",
                 "backend": h.optimizer,
@@ -357,13 +247,12 @@ def fit(module: ToolboxSysIDModule, train: EquationOneResiduals, start: np.ndarr
     params.move_off_bounds()  # the toolbox's advice: a start on a bound can stall its solver there
     evaluations = 0
 
+    evaluated = uncertainty.residual_function(train, module.space)
+
     def residuals(x: np.ndarray) -> np.ndarray:
-        """[size] for one point, [size, k] for k points (the finite-difference columns go in one batched call)."""
         nonlocal evaluations
-        columns = np.asarray(x, float).reshape(len(names), -1).T
-        evaluations += len(columns)
-        values, _ = train([module.space.from_vector(column) for column in columns])
-        return values[0] if np.ndim(x) == 1 else values.T
+        evaluations += 1 if np.ndim(x) == 1 else np.shape(x)[1]
+        return evaluated(x)
 
     def residual_fn(x, _params):  # the signature sysid.optimize calls, as sysid.build_residual_fn's closures have it
         return [residuals(x)], [], []
@@ -377,16 +266,8 @@ def fit(module: ToolboxSysIDModule, train: EquationOneResiduals, start: np.ndarr
         found, result = sysid.optimize(params, residual_fn, optimizer=h.optimizer, verbose=False, **kwargs)
     x = np.clip(found.as_vector(), *found.get_bounds())
     at_optimum = residuals(x)
-    low, high = found.get_bounds()
-    jacobian, _ = minimize.jacobian_fd(
-        residual=residuals,
-        x=x.reshape(-1, 1),
-        r=at_optimum.reshape(-1, 1),
-        eps=h.diff_step,
-        n_res=0,
-        bounds=[low.reshape(-1, 1), high.reshape(-1, 1)],
-    )
-    covariance, interval = sysid.calculate_intervals([at_optimum], jacobian, alpha=1.0 - h.confidence)
+    space = dimensions(module.space.n_bodies, module.space.n_joints)
+    interval, covariance = intervals(residuals, x, space, h.confidence, h.diff_step, at_optimum)
     ended = [line for line in printed.getvalue().splitlines() if line.startswith(("Terminated", "`"))]
     log.info("mujoco.sysid (%s): %s", h.optimizer, ended[0].strip() if ended else "done")
     return {
