@@ -81,6 +81,7 @@ BUDGET_RULES = {
             "bootstrap",
             "batch_trajectories",
             "val_trajectories",
+            "interval_trajectories",
             "val_rollouts",
             "val_windows",
             "batch_size",
@@ -95,7 +96,7 @@ BUDGET_RULES = {
 # In a model's budgets these may also be null: every trajectory (the diagnosis always samples).
 MODEL_BUDGET_RULES = {
     **BUDGET_RULES,
-    **dict.fromkeys(("batch_trajectories", "val_trajectories", "val_rollouts"), COUNT_OR_ALL),
+    **dict.fromkeys(("batch_trajectories", "val_trajectories", "interval_trajectories", "val_rollouts"), COUNT_OR_ALL),
 }
 # Top-level settings, where the command has them.
 THREADS = Rule("a positive integer or null (torch's choice)", lambda value: value is None or COUNT.accepts(value))

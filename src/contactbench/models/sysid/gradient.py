@@ -27,7 +27,7 @@ import pytorch_lightning as pl
 import torch
 
 from contactbench.errors import ContactbenchError, require_positive_integers
-from contactbench.models.sysid.module import IdentifiedModule, package_versions, save_last_checkpoint, val_subset
+from contactbench.models.sysid.module import IdentifiedModule, fixed_subset, package_versions, save_last_checkpoint
 from contactbench.models.sysid.search_space import SearchSpace
 from contactbench.protocol import make_context
 from contactbench.scene import Recordings, Split
@@ -388,7 +388,7 @@ class AdamThroughMjx(pl.Callback):
         started = time.perf_counter()
         parameters = self._parameters(module)
         h = module.hparams
-        indices = val_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
+        indices = fixed_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
         val_loss = float(self.val_objective([parameters], indices).losses[0])
         self.seconds["val"] += time.perf_counter() - started
         if val_loss < self.best["val_loss"]:

@@ -138,6 +138,7 @@ class SysIDModule(IdentifiedModule):
         nthread: int | None = None,
         substeps: int = 1,
         engine: str = "mujoco",
+        interval_trajectories: int | None = None,
     ):
         super().__init__(dataset, engine)
         require_positive_integers({"evaluations": evaluations, "restarts": restarts, "num_workers": num_workers})
@@ -167,8 +168,8 @@ class SysIDModule(IdentifiedModule):
         }
 
     def uncertainty(self) -> dict:
-        """The selected parameters' intervals and covariance (uncertainty.py), from eq. (1)'s residuals on every train
-        toss: P + 1 rollouts of the train split, once, when the fit is written up."""
+        """The selected parameters' intervals and covariance (uncertainty.py), from eq. (1)'s residuals on the train
+        tosses (`interval_trajectories` of them, null: all): P + 1 rollouts of them, once, when the fit is written."""
         h = self.hparams
         rollouts = self.rollouts()
         try:
@@ -179,6 +180,7 @@ class SysIDModule(IdentifiedModule):
                 rollouts,
                 position_exponent=h.position_exponent,
                 unstable_penalty=h.unstable_penalty,
+                indices=fixed_subset(self.dataset.split("train").n_trajectories, h.interval_trajectories, h.seed),
             )
             vector = self.selected.cpu().numpy()
             space = uncertainty.dimensions(h.engine, self.space.n_bodies, self.space.n_joints)
@@ -217,8 +219,8 @@ def save_last_checkpoint(trainer: pl.Trainer) -> None:
     os.replace(partial, path)
 
 
-def val_subset(n: int, count: int | None, seed: int) -> np.ndarray:
-    """The val tosses a search scores its candidates on: all, or the same `count` of them at every check."""
+def fixed_subset(n: int, count: int | None, seed: int) -> np.ndarray:
+    """The tosses of a split a search scores on (val) or states its intervals on (train): all, or the same `count`."""
     if not count or count >= n:
         return np.arange(n)
     return np.sort(np.random.default_rng([seed, 7]).choice(n, size=count, replace=False))
@@ -354,7 +356,7 @@ class NevergradSearch(pl.Callback):
     def _finish_restart(self, module: SysIDModule) -> None:
         h = module.hparams
         recommendation = module.space.to_parameters(self.optimizer.provide_recommendation().value)
-        val_indices = val_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
+        val_indices = fixed_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
         val_loss = float(self.val_objective([recommendation], val_indices).losses[0])
         vector = module.space.to_vector(recommendation)
         self.results.append({"vector": vector.tolist(), "val_loss": val_loss})

@@ -33,7 +33,7 @@ import torch
 
 from contactbench.errors import ContactbenchError, require_positive_integers
 from contactbench.models.sysid import uncertainty
-from contactbench.models.sysid.module import IdentifiedModule, package_versions, save_last_checkpoint, val_subset
+from contactbench.models.sysid.module import IdentifiedModule, fixed_subset, package_versions, save_last_checkpoint
 from contactbench.models.sysid.uncertainty import EquationOneResiduals, intervals, summary, toolbox
 from contactbench.recordings import Recordings
 from contactbench.sim import mujoco_engine
@@ -165,7 +165,7 @@ class LeastSquaresSearch(pl.Callback):
         h = module.hparams
         self.rollouts = module.rollouts()
         n_train = len(module.dataset.split("train").poses)
-        indices = val_subset(n_train, h.train_trajectories, h.seed + 1)  # a fixed subset: least squares needs one
+        indices = fixed_subset(n_train, h.train_trajectories, h.seed + 1)  # a fixed subset: least squares needs one
         self.train = EquationOneResiduals(
             module.dataset,
             "train",
@@ -195,7 +195,7 @@ class LeastSquaresSearch(pl.Callback):
         restart = len(self.results)
         result = fit(module, self.train, start_vector(module, restart))
         parameters = module.space.from_vector(result["vector"])
-        val_indices = val_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
+        val_indices = fixed_subset(self.val_objective.n_trajectories, h.val_trajectories, h.seed)
         result["val_loss"] = float(self.val_objective([parameters], val_indices).losses[0])
         self.results.append(result)
         module.log_dict(
