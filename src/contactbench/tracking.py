@@ -49,7 +49,15 @@ def curated_params(cfg: DictConfig) -> dict:
         "seed": tree.get("seed"),
         "context_frames": tree.get("context_frames"),
     }
-    return {key: value for key, value in flatten(chosen).items() if value is not None}
+    flat = {key: value for key, value in flatten(chosen).items() if value is not None}
+    # A model setting that only repeats its budget's value (model.module.evaluations: 16 beside budget.evaluations:
+    # 16) is shown once, as the budget's.
+    stated = {key.removeprefix("budget."): value for key, value in flat.items() if key.startswith("budget.")}
+    return {
+        key: value
+        for key, value in flat.items()
+        if not (key.startswith("model.") and stated.get(key.rsplit(".", 1)[-1], object()) == value)
+    }
 
 
 def run_tags(cfg: DictConfig) -> dict[str, str]:
