@@ -286,6 +286,24 @@ def learned(args, dataset, meshes, split, base, rollouts, params, report) -> Non
             report(f"learned map k={k} alpha={alpha:g}", predicted, r2)
 
 
+def prepare(args, split_name: str):
+    """The dataset (train and `split_name`), its meshes, the scored tosses and their context, the identified engine's
+    rollouts and parameters, and a `report(label, predicted)` that prints the project's score of a prediction."""
+    dataset = read_recordings(REPO_ROOT / args.dataset, ["train", split_name])
+    meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
+    split = subset(dataset.split(split_name), args.limit)
+    context = make_context(split, dataset.dt, args.context_frames)
+    name, substeps, params = identified(REPO_ROOT / args.run, dataset.n_bodies, len(dataset.joints))
+    rollouts = engine(name).rollouts(dataset.scene, substeps=substeps)
+    print(f"{name}, {args.run}, {split_name}: {len(split.lengths)} tosses")
+
+    def report(label: str, predicted: np.ndarray, extra: str = "") -> None:
+        value = score(split, predicted, dataset, args.context_frames)
+        print(f"{label:<32} {value[0]:.4f} widths / {value[1]:.3f} rad {extra}", flush=True)
+
+    return dataset, meshes, split, context, rollouts, params, report
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", default=RUN, help="a SysID train run folder (fitted.json, .hydra/config.yaml)")
@@ -305,18 +323,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.split == "test" and not (args.learned and len(args.ks) == 1 and len(args.alphas) == 1):
         parser.error("test is scored once, for the learned map chosen on val: --learned with one --ks and one --alphas")
-    dataset = read_recordings(REPO_ROOT / args.dataset, ["train", args.split])
-    meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
-    split = subset(dataset.split(args.split), args.limit)
-    context = make_context(split, dataset.dt, args.context_frames)
-    name, substeps, params = identified(REPO_ROOT / args.run, dataset.n_bodies, len(dataset.joints))
-    rollouts = engine(name).rollouts(dataset.scene, substeps=substeps)
-    print(f"{name}, {args.run}, {args.split}: {len(split.lengths)} tosses")
+    dataset, meshes, split, context, rollouts, params, report = prepare(args, args.split)
     started = time.perf_counter()
-
-    def report(label: str, predicted: np.ndarray, extra: str = "") -> None:
-        value = score(split, predicted, dataset, args.context_frames)
-        print(f"{label:<32} {value[0]:.4f} widths / {value[1]:.3f} rad {extra}", flush=True)
 
     try:
         result = rollouts.rollout_context(context, params)

@@ -46,23 +46,19 @@ from elbow_impact_ceiling import (  # a sibling script: python benchmarks/... pu
     features,
     first_impacts,
     heading,
-    identified,
     impact_samples,
+    prepare,
     roll_with_resets,
     score,
     state_residual,
-    subset,
     velocity_noise,
 )
 
 from contactbench import rotations
-from contactbench.config import REPO_ROOT
 from contactbench.kinematics import hinge_coordinates
 from contactbench.metrics import compute_metrics, joint_errors
 from contactbench.protocol import make_context
-from contactbench.recordings import read_recordings
 from contactbench.scene import Split
-from contactbench.sim.engines import engine
 
 PARTS = ("pos m", "rot rad", "v m/s", "w rad/s")
 
@@ -408,18 +404,9 @@ def main() -> None:
     args = parser.parse_args()
     if not (args.analogues or args.sensitivity or args.ensemble):
         parser.error("name a measurement: --analogues, --sensitivity or --ensemble N")
-    dataset = read_recordings(REPO_ROOT / args.dataset, ["train", "val"])
-    meshes = [dataset.body_mesh(k) for k in range(dataset.n_bodies)]
-    train, split = dataset.split("train"), subset(dataset.split("val"), args.limit)
-    context = make_context(split, dataset.dt, args.context_frames)
-    name, substeps, params = identified(REPO_ROOT / args.run, dataset.n_bodies, len(dataset.joints))
-    rollouts = engine(name).rollouts(dataset.scene, substeps=substeps)
-    print(f"{name}, {args.run}, val: {len(split.lengths)} tosses")
+    dataset, meshes, split, context, rollouts, params, report = prepare(args, "val")
+    train = dataset.split("train")
     started = time.perf_counter()
-
-    def report(label: str, predicted: np.ndarray, extra: str = "") -> None:
-        value = score(split, predicted, dataset, args.context_frames)
-        print(f"{label:<32} {value[0]:.4f} widths / {value[1]:.3f} rad {extra}", flush=True)
 
     try:
         result = rollouts.rollout_context(context, params)

@@ -84,7 +84,7 @@ def table(rows: list[dict]) -> str:
     for model in models:
         cells = [_cell(test.get((model, dataset)), metric) for dataset in REAL for metric in METRICS]
         lines.append(f"| `{model}` | " + " | ".join(cells) + " |")
-    used = [row for row in test.values()]
+    used = list(test.values())
     commits = sorted({row["commit"] for row in used})
     dates = sorted({row["date"][:10] for row in used if row["date"] != UNKNOWN})
     seeds = sorted({row["seeds"] for row in used})
