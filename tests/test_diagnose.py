@@ -361,6 +361,35 @@ def test_airborne_segments_fly_from_their_first_frame_to_their_last(tmp_path):
         assert segments.airborne[m] == bool((window == FREE).all() and (heights >= AIRBORNE_CLEARANCE).all())
 
 
+def test_a_parameter_set_simulated_before_is_not_simulated_again_and_scores_the_same(tmp_path, monkeypatch):
+    from contactbench.diagnosis import segments as segments_module
+    from contactbench.diagnosis.library import Hypothesis
+    from contactbench.diagnosis.segments import SegmentSimulator, cut_segments
+
+    path = generate_dataset(CUBE, tmp_path / "cubes", split_sizes={"train": 3}, workers=1, progress=False)
+    dataset = read_recordings(path)
+    simulator = SegmentSimulator(dataset, cut_segments(dataset, dataset.split("train"), 8), nthread=1)
+    hypothesis = Hypothesis(1)
+    start = hypothesis.start()
+    a, b = hypothesis.contact_parameters(start), hypothesis.contact_parameters(start * 1.01)
+    simulated = []
+    simulate = simulator.rollouts.simulate
+    monkeypatch.setattr(
+        simulator.rollouts, "simulate", lambda params, *rest: simulated.append(len(params)) or simulate(params, *rest)
+    )
+    first = simulator.residuals([a, b])
+    again = simulator.residuals([b, a, a])
+    assert simulated == [2]  # the second call simulated nothing
+    np.testing.assert_array_equal(again, first[[1, 0, 0]])
+    assert not np.array_equal(first[0], first[1])
+    # the cache holds what fits in its bytes, least recently used first out: a parameter set evicted is simulated again
+    monkeypatch.setattr(segments_module, "RESIDUAL_CACHE_BYTES", first[0].nbytes)
+    simulator.residuals([b])  # keeps only b
+    np.testing.assert_array_equal(simulator.residuals([a])[0], first[0])
+    assert simulated == [2, 1]
+    simulator.close()
+
+
 def test_only_effects_that_change_free_flight_may_lean_on_it():
     from contactbench.diagnosis.library import library
 

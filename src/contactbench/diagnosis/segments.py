@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
+import pickle
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -16,6 +19,11 @@ from contactbench.sim.engines import engine
 COMPONENTS = ("linear_normal", "linear_tangential", "angular_normal", "angular_tangential")
 # Every residual entry from the frame MuJoCo diverged at scores this much, and no entry more (finite: fits carry on).
 UNSTABLE_RESIDUAL = 10.0
+# Bytes of residuals a SegmentSimulator keeps, least recently used first out: a diagnosis asks for the same parameter
+# set again and again (a candidate effect at its "off" start is the model before it; a least-squares fit ends where its
+# last step was; the model of a round is scored on val in several judgements), and a stepped engine's evaluation costs
+# seconds.
+RESIDUAL_CACHE_BYTES = 128 * 2**20
 # Body widths the lowest vertex keeps above the recorded floor in an airborne segment: a floor fitted a few degrees
 # tilted or a centimetre higher must not reach it (a rolling friction "gained" in segments merely labelled free next
 # to a tilted floor).
@@ -117,6 +125,7 @@ class SegmentSimulator:
         self.segments = segments
         self.engine_name = engine_name
         self.rollouts = engine(engine_name).rollouts(dataset, nthread)
+        self._cache: OrderedDict[bytes, np.ndarray] = OrderedDict()  # parameter set's digest -> its residuals
 
     def close(self) -> None:
         """Release the engine's worker processes (stepped engines); MuJoCo's threads need nothing."""
@@ -132,7 +141,25 @@ class SegmentSimulator:
 
         A rollout is judged by where it goes, capped at UNSTABLE_RESIDUAL, which every frame from a divergence on
         scores: a segment that gains some energy (a soft contact pushing a resting body out of the floor) may still
-        follow the recording, and scoring it as blown up once rejected a right centre-of-mass offset."""
+        follow the recording, and scoring it as blown up once rejected a right centre-of-mass offset.
+
+        A parameter set simulated before on these segments is not simulated again: every engine's rollout is a
+        function of its parameters alone (the cache holds RESIDUAL_CACHE_BYTES)."""
+        keys = [hashlib.sha256(pickle.dumps(p, protocol=pickle.HIGHEST_PROTOCOL)).digest() for p in params]
+        asked = {key: p for key, p in zip(keys, params) if key not in self._cache}
+        if asked:
+            for key, residuals in zip(asked, self._simulate(list(asked.values()))):
+                self._cache[key] = kept = residuals.copy()  # not a view keeping the whole batch alive
+                kept.flags.writeable = False
+        out = np.stack([self._cache[key] for key in keys])
+        for key in keys:
+            self._cache.move_to_end(key)
+        capacity = max(len(keys), RESIDUAL_CACHE_BYTES // max(out[0].nbytes, 1))
+        while len(self._cache) > capacity:
+            self._cache.popitem(last=False)
+        return out
+
+    def _simulate(self, params: list) -> np.ndarray:
         poses, _ = self.predict(params)
         stacked = np.concatenate(residual_vectors(self.segments, poses), axis=-1)
         stacked = np.nan_to_num(stacked, nan=UNSTABLE_RESIDUAL, posinf=UNSTABLE_RESIDUAL, neginf=-UNSTABLE_RESIDUAL)
