@@ -8,12 +8,15 @@ service). Nothing here reads a dataset or starts a run.
 
 from __future__ import annotations
 
+import fnmatch
 from pathlib import Path
 
 import pytest
 from conftest import falling_cubes
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import ChoiceSweep, Glob
 from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -80,8 +83,13 @@ def test_an_experiment_sweeps_over_options_that_exist(experiment: str, hydra_con
     assert {"model", "variant"} <= set(params)
     train = compose(config_name="train")
     for key, values in params.items():
-        if key in ("model", "variant"):  # config groups: every value an option
-            chosen = options(key) if values == "glob(*)" else values.split(",")
+        if key in ("model", "variant"):  # config groups: every value an option, every glob pattern one at least
+            sweep = OverridesParser.create().parse_overrides([f"{key}={values}"])[0].value()
+            if isinstance(sweep, Glob):
+                assert all(fnmatch.filter(options(key), pattern) for pattern in sweep.include), (experiment, values)
+                chosen = sweep.filter(options(key))
+            else:
+                chosen = list(sweep.list) if isinstance(sweep, ChoiceSweep) else [str(sweep)]
             assert chosen and set(chosen) <= set(options(key)), (experiment, key, values)
         else:  # a setting train.py's config has
             assert OmegaConf.select(train, key) is not None, (experiment, key)

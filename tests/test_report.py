@@ -13,6 +13,7 @@ import pytest
 from matplotlib.colors import to_hex
 from test_pipeline import smoke_train_sweep
 
+from contactbench.errors import ContactbenchError
 from contactbench.evaluation import figures, renders
 from contactbench.evaluation.collect import expected_cells
 from contactbench.evaluation.figures import Run, error_over_time_figure, sweep_figure
@@ -207,6 +208,21 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     first = {path: path.read_bytes() for path in (sweep / "results.md", table)}
     write_report(sweep, renders=False)
     assert {path: path.read_bytes() for path in first} == first
+    # another sitting's groups stay as they were (a real dataset's rows here), a group scored again is replaced whole
+    # (a model of this variant the run tree no longer holds goes)
+    other = [{**row, "dataset": "contactnets_cube", "variant": "real", "paper_variant": ""} for row in rows]
+    gone = {**rows[0], "model": "mujoco_gone"}
+    with open(table, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows([gone, *rows, *other])
+    write_report(sweep, renders=False)
+    with open(table, newline="") as handle:
+        merged = list(csv.DictReader(handle))
+    assert merged == other + rows  # in cell order: contactnets_cube before frictioncubes
+    table.write_text("model,dataset\nsysid,x\n")
+    with pytest.raises(ContactbenchError, match=r"smoke\.csv: field 'variant' missing"):
+        write_report(sweep, renders=False)
 
 
 def toss_run(model: str, running: list[int], pos_err: list[float]) -> Run:

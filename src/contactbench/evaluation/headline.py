@@ -9,14 +9,13 @@ significantly different from it marked. The README holds it between two markers;
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
 from contactbench import atomic
 from contactbench.config import REPO_ROOT
 from contactbench.errors import ContactbenchError
-from contactbench.evaluation.results_file import HEADER, UNKNOWN
+from contactbench.evaluation.results_file import UNKNOWN, read_rows
 
 RESULTS = REPO_ROOT / "results" / "quick.csv"
 README = REPO_ROOT / "README.md"
@@ -42,21 +41,6 @@ ORDER = (
 )
 TIE = "≈"
 METRICS = {"pos_err": "{:.3f}", "rot_err_rad": "{:.2f}"}
-
-
-def read_rows(path: Path) -> list[dict]:
-    """The results file's rows; one line naming the file and what is wrong where it is not one."""
-    try:
-        with open(path, newline="") as handle:
-            rows = list(csv.DictReader(handle))
-    except (OSError, UnicodeDecodeError, csv.Error) as error:
-        raise ContactbenchError(f"{path}: cannot be read as a results file ({error})") from None
-    missing = [key for key in HEADER if rows and key not in rows[0]]
-    if not rows or missing:
-        raise ContactbenchError(
-            f"{path}: field {missing[0]!r} missing" if missing else f"{path}: no rows (expected a results file)"
-        )
-    return rows
 
 
 def _cell(row: dict | None, metric: str) -> str:

@@ -49,9 +49,11 @@ def write_report(root: Path, renders: bool = True, results: Path | None = None) 
     for run in test_runs:
         run.summary["budget"] = tests[run.path]["budget"]
     runs = [run for run in test_runs if observed_plainly(run.summary)]
+    # First the results file, the step that reads a file already there: one it cannot merge with stops the report
+    # before anything is written.
+    written = write_results(cells_of(every_row), results)
     figures, _ = draw_all(root, root / "figures", test_runs)
     rendered = render_report(root, root / "renders") if renders else []
-    written = write_results(cells_of(every_row), results)
     files = ", ".join(f"`{_shown(path, root)}`" for path in written)
     claims = [write_claims(path) for path in written]
     sections = [

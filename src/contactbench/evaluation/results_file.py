@@ -1,5 +1,10 @@
 """results/<budget>.csv: one row a cell (a model on a variant, split and observation, over its seeds), each metric
-with its 95% interval, and the commit, date and wall time of the runs that made it."""
+with its 95% interval, and the commit, date and wall time of the runs that made it.
+
+A report writes the groups of cells its run tree scores (GROUP: one dataset variant, split and observation, whose
+models are ranked against each other) and keeps the file's other groups as they were, each row with its own commit:
+a sitting of some variants (make claims) adds them without erasing another sitting's (make headline), and a group
+scored again is replaced whole."""
 
 from __future__ import annotations
 
@@ -10,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from contactbench import atomic, provenance, variants
-from contactbench.evaluation.cells import METRICS, Cell, difference
+from contactbench.errors import ContactbenchError
+from contactbench.evaluation.cells import METRICS, Cell, difference, variant_order
 
 UNKNOWN = "unknown"
 # paper_variant: yes where conf/variant/ names the variant, no for a custom one (friction=0.3), empty for a recorded
@@ -43,6 +49,10 @@ HEADER = [
     *VERSUS_BEST,
     *RECORDED,
 ]
+
+
+# The cells ranked against each other (versus_best): a report replaces a group whole or leaves it as it was.
+GROUP = ("dataset", "variant", "split", "budget", "noise_mm", "frame_stride")
 
 
 def _number(value: float | None) -> str:
@@ -123,20 +133,57 @@ def row_of(cell: Cell, versus: dict[str, str] | None = None) -> dict[str, str]:
     return {**row, **(versus or dict.fromkeys(VERSUS_BEST, "")), **_provenance(cell)}
 
 
-def csv_text(cells: list[Cell]) -> str:
+def read_rows(path: Path) -> list[dict]:
+    """A results file's rows; one line naming the file and what is wrong where it is not one."""
+    try:
+        with open(path, newline="") as handle:
+            rows = list(csv.DictReader(handle))
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise ContactbenchError(f"{path}: cannot be read as a results file ({error})") from None
+    missing = [key for key in HEADER if rows and key not in rows[0]]
+    if not rows or missing:
+        raise ContactbenchError(
+            f"{path}: field {missing[0]!r} missing" if missing else f"{path}: no rows (expected a results file)"
+        )
+    return rows
+
+
+def _row_order(row: dict[str, str]) -> tuple:
+    """cells.cell_order, read from a written row."""
+    return (
+        row["dataset"],
+        variant_order(row["variant"]),
+        row["budget"],
+        float(row["noise_mm"]),
+        int(row["frame_stride"]),
+        row["model"],
+        row["split"],
+    )
+
+
+def merged(path: Path, rows: list[dict[str, str]]) -> list[dict[str, str]]:
+    """`rows` and the rows of the file at `path` (if any) in groups (GROUP) that `rows` do not score, in cell order."""
+    scored = {tuple(row[key] for key in GROUP) for row in rows}
+    kept = [row for row in read_rows(path) if tuple(row[key] for key in GROUP) not in scored] if path.exists() else []
+    return sorted(kept + rows, key=_row_order)
+
+
+def csv_text(rows: list[dict[str, str]]) -> str:
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=HEADER, lineterminator="\n")
+    writer = csv.DictWriter(buffer, fieldnames=HEADER, lineterminator="\n", extrasaction="ignore")
     writer.writeheader()
-    writer.writerows(row_of(cell, versus) for cell, versus in zip(cells, versus_best(cells)))
+    writer.writerows(rows)
     return buffer.getvalue()
 
 
 def write_results(cells: list[Cell], folder: Path) -> list[Path]:
-    """folder/<budget>.csv for every budget among the cells (cells in their given order); the files written."""
+    """folder/<budget>.csv for every budget among the cells, its other groups kept (merged); the files written."""
     budgets = sorted({cell.budget or UNKNOWN for cell in cells})
     written = []
     for budget in budgets:
         path = Path(folder) / f"{budget}.csv"
-        atomic.write_text(path, csv_text([cell for cell in cells if (cell.budget or UNKNOWN) == budget]))
+        ranked = [cell for cell in cells if (cell.budget or UNKNOWN) == budget]
+        rows = [row_of(cell, versus) for cell, versus in zip(ranked, versus_best(ranked))]
+        atomic.write_text(path, csv_text(merged(path, rows)))
         written.append(path)
     return written
