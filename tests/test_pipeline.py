@@ -146,6 +146,37 @@ def test_a_setting_chosen_on_val_is_the_best_candidate_and_evaluate_scores_it(tm
     assert document["pos_err"] == pytest.approx(val_pos_err)
 
 
+def test_a_setting_chosen_early_goes_on_alone_and_a_resumed_run_keeps_the_choice(tmp_path):
+    """choose_at_step: every setting trains to that step, the one best on val so far goes on to max_steps (resumed
+    from its checkpoint there), the others keep their score at that step; a run resumed after the choice keeps it."""
+    grid = ["dataset=contactnets_cube", "model=gnn", "budget=smoke", "~model.choose_on_val"]
+    steps = ["model.budgets.smoke.max_steps=30", "model.budgets.smoke.val_check_interval=10"]
+    overrides = [*grid, *steps, "+model.choose_on_val.module.lr=[1e-3,3e-2]", "model.budgets.smoke.choose_at_step=10"]
+    run_dir = tmp_path / "train-run"
+    runs.train(compose_config("train", overrides, tmp_path), run_dir)
+    fitted = json.loads((run_dir / "fitted.json").read_text())
+    winner = f"lr={fitted['chosen_on_val']['module.lr']:g}"
+    (loser,) = {"lr=0.001", "lr=0.03"} - {winner}
+
+    def step(name: str, checkpoint: str = "last") -> int:
+        return torch.load(run_dir / "checkpoints" / name / f"{checkpoint}.ckpt", weights_only=True)["global_step"]
+
+    assert fitted["chosen_at_step"] == 10 and (step(winner), step(loser)) == (30, 10)
+    record = json.loads((run_dir / "checkpoints" / "chosen_at_step.json").read_text())
+    at_ten = {f"lr={entry['setting']['module.lr']:g}": entry["val_pos_err"] for entry in record["candidates"]}
+    assert at_ten[winner] <= at_ten[loser]
+    assert {f"lr={e['setting']['module.lr']:g}": e["val_pos_err"] for e in fitted["candidates"]}[loser] == at_ten[loser]
+    # resumed after the choice: the record holds it (the winner's own best is now past step 10), nothing trains again
+    (run_dir / "fitted.json").unlink()
+    runs.train(compose_config("train", [*overrides, "resume=true"], tmp_path), run_dir)
+    assert json.loads((run_dir / "fitted.json").read_text())["candidates"] == fitted["candidates"]
+    assert (step(winner), step(loser)) == (30, 10)
+    record["candidates"][0]["checkpoint"] = "../../elsewhere.ckpt"
+    (run_dir / "checkpoints" / "chosen_at_step.json").write_text(json.dumps(record))
+    with pytest.raises(ContactbenchError, match=r"chosen_at_step\.json: field 'checkpoint' must be lr="):
+        runs.train(compose_config("train", [*overrides, "resume=true"], tmp_path), run_dir)
+
+
 def test_last_checkpoint_is_the_last_validation_not_the_best(tmp_path):
     """A killed run resumes from last.ckpt: written at every validation, not only when the monitored score improves
     (here the monitor, train/seconds, is lowest at the first validation)."""
