@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 from hydra import compose, initialize_config_dir
 from test_pipeline import smoke_train_sweep
 
@@ -41,3 +44,6 @@ def test_stepped_engines_run_inside_the_local_launchers_workers(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = sorted((tmp_path / "sweep").rglob("test/metrics.json"))
     assert len(metrics) == 2, result.stderr[-3000:]
+    # PyBullet made these tosses: its own engine's row says so, Drake's does not (the report ranks it with none)
+    own = {document["model"]: document.get("own_engine") for document in map(json.loads, map(Path.read_text, metrics))}
+    assert own == {"bullet_default": True, "drake_default": None}

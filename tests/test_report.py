@@ -124,12 +124,15 @@ def test_the_report_accounts_for_every_job_the_sweep_asked_for(tmp_path):
     assert "4 jobs asked for: 2 done, 1 skipped, 0 failed, 0 unfinished, 1 missing." in text
 
 
-def as_model(job: Path, folder: Path, model: str, shift: float = 0.0) -> None:
-    """A copy of a sweep job's run as another model's: the same scores, or every toss's position error shifted."""
+def as_model(job: Path, folder: Path, model: str, shift: float = 0.0, own_engine: bool = False) -> None:
+    """A copy of a sweep job's run as another model's: the same scores, or every toss's position error shifted; with
+    own_engine, as a model simulating with the engine that made the data (runs.py marks its metrics.json so)."""
     shutil.copytree(job, folder)
     for metrics in folder.rglob("metrics.json"):
         document = json.loads(metrics.read_text())
-        document.update(model=model, pos_err=document["pos_err"] + shift)
+        document.update(
+            model=model, pos_err=document["pos_err"] + shift, **({"own_engine": True} if own_engine else {})
+        )
         metrics.write_text(json.dumps(document))
         tosses = metrics.parent / "per_trajectory.csv"
         with open(tosses, newline="") as handle:
@@ -155,6 +158,7 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     for job in sorted(sweep.glob("*model=mujoco_default*")):
         as_model(job, sweep / job.name.replace("mujoco_default", "mujoco_twin"), "mujoco_twin")
         as_model(job, sweep / job.name.replace("mujoco_default", "mujoco_worse"), "mujoco_worse", shift=1.0)
+        as_model(job, sweep / job.name.replace("mujoco_default", "mujoco_own"), "mujoco_own", own_engine=True)
     text = write_report(sweep, renders=False).read_text()
     table = sweep / "results" / "smoke.csv"
     assert "results/smoke.csv" in text
@@ -165,7 +169,7 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     # a row per model and split over both seeds, in a fixed order, each metric with its interval and where it is from
     with open(table, newline="") as handle:
         rows = list(csv.DictReader(handle))
-    models = ("mujoco_default", "mujoco_twin", "mujoco_worse")
+    models = ("mujoco_default", "mujoco_own", "mujoco_twin", "mujoco_worse")
     assert [(row["model"], row["split"], row["seeds"]) for row in rows] == [
         (model, split, "0 1") for model in models for split in ("test", "val")
     ]
@@ -173,7 +177,7 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     metrics += ["interbody_penetration_m", "pairwise_collisions"]
     assert list(rows[0]) == [
         *["model", "dataset", "variant", "paper_variant", "split", "budget", "noise_mm", "frame_stride", "seeds"],
-        "tosses",
+        *["tosses", "own_engine"],
         *[f"{metric}{suffix}" for metric in metrics for suffix in ("", "_low", "_high", "_interval")],
         "pairwise_collisions_true_max",
         *["pos_err_vs_best", "rot_err_rad_vs_best"],
@@ -185,6 +189,9 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     for split in ("test", "val"):
         assert {ranked["mujoco_default", split], ranked["mujoco_twin", split]} == {"best", "tie"}
         assert ranked["mujoco_worse", split] == "worse"
+        # a model of the engine that made the data scores as well as the best and is ranked with none
+        assert ranked["mujoco_own", split] == "own engine"
+    assert [row["own_engine"] for row in rows] == ["" if row["model"] != "mujoco_own" else "yes" for row in rows]
     for row in rows:
         where = ("frictioncubes", "friction=0", "yes", "smoke", "4")
         assert tuple(row[key] for key in ("dataset", "variant", "paper_variant", "budget", "tosses")) == where
@@ -203,7 +210,9 @@ def test_every_cell_has_its_interval_and_the_results_file_a_row_per_cell(tmp_pat
     (grid_row,) = re.findall(r"^\| frictioncubes \| friction=0 \| smoke \|.*$", text, re.M)
     ties = grid_row.split(" | ")[-1]
     assert ties.startswith("pos: mujoco_default ≈ mujoco_twin; rot: ") and "mujoco_worse" not in ties.split(";")[0]
-    assert " †" in grid_row.split(" | ")[4]  # the twin, beside the bold best
+    columns = grid_row.split(" | ")
+    assert " †" in columns[5]  # the twin, beside the bold best
+    assert columns[4].endswith(" ‡") and "**" not in columns[4]  # the data's own engine: marked, never the best
     # same runs, same bytes
     first = {path: path.read_bytes() for path in (sweep / "results.md", table)}
     write_report(sweep, renders=False)

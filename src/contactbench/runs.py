@@ -18,6 +18,7 @@ from contactbench.errors import ContactbenchError
 from contactbench.evaluation.scoring import score_model, write_score
 from contactbench.models.base import ContactModel
 from contactbench.recordings import Recordings, RecordingsError, read_meta, read_recordings, require_frames
+from contactbench.sim.engines import made_by
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,8 @@ def _score_and_write(
             "task": str(cfg.task_name),  # which command made this row: the report keeps one of a repeated row
             "variant_values": dict(cfg.dataset.get("values") or {}),
             **({} if paper is None else {"paper_variant": paper}),
+            # a model scoring data its own engine made (bullet_default on PyBullet's tosses): the report says so
+            **({"own_engine": True} if made_by(model.engine, dataset.meta) else {}),
         },
     )
     for key, value in score.metrics.summary.items():

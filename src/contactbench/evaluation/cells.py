@@ -42,6 +42,13 @@ class Cell:
     def n_trajectories(self) -> int:
         return int(next(iter(self.runs.values()))["n_trajectories"])
 
+    @property
+    def own_engine(self) -> bool:
+        """Whether the model simulates with the engine that made the data (runs.py marks its metrics.json): its error
+        says how well it recovers that engine's settings, not how good a contact model it is, so no ranking counts
+        it."""
+        return any(bool(row.get("own_engine")) for row in self.runs.values())
+
     def mean(self, metric: str) -> float | None:
         """The mean over seeds of each seed's mean over tosses; None where a run did not measure it."""
         values = [row.get(metric) for row in self.runs.values()]

@@ -34,6 +34,10 @@ KEYS = [
     "tosses",
 ]
 RECORDED = ["commit", "date", "wall_s"]
+# "yes" where the model simulates with the engine that generated the data (Cell.own_engine: bullet_default on PyBullet's
+# tosses), left out of its group's ranking (VERSUS_BEST: "own engine"). A file from before the column reads as "".
+OWN_ENGINE = "own_engine"
+OWN_ENGINE_RANK = "own engine"
 # The most distinct body pairs any recorded test toss of the cell touched (Fig. 7b's claim is about a maximum, which
 # no mean and interval can say); empty with one body.
 PAIRS_MAX = "pairwise_collisions_true_max"
@@ -44,6 +48,7 @@ RANKED = ("pos_err", "rot_err_rad")
 VERSUS_BEST = tuple(f"{metric}_vs_best" for metric in RANKED)
 HEADER = [
     *KEYS,
+    OWN_ENGINE,
     *(f"{metric}{suffix}" for metric in METRICS for suffix in ("", "_low", "_high", "_interval")),
     PAIRS_MAX,
     *VERSUS_BEST,
@@ -90,10 +95,15 @@ def _most_pairs(cell: Cell) -> str:
 
 
 def versus_best(cells: list[Cell]) -> list[dict[str, str]]:
-    """Per cell (in order), its VERSUS_BEST columns among the cells scored on the same tosses."""
-    ranks: list[dict[str, str]] = [dict.fromkeys(VERSUS_BEST, "") for _ in cells]
+    """Per cell (in order), its VERSUS_BEST columns among the cells scored on the same tosses; a cell of the data's
+    own engine is ranked with none (OWN_ENGINE_RANK)."""
+    ranks: list[dict[str, str]] = [
+        dict.fromkeys(VERSUS_BEST, OWN_ENGINE_RANK if cell.own_engine else "") for cell in cells
+    ]
     groups: dict[tuple, list[int]] = {}
     for index, cell in enumerate(cells):
+        if cell.own_engine:
+            continue
         at = (cell.dataset, cell.variant, cell.split, cell.budget, cell.noise_mm, cell.frame_stride)
         groups.setdefault(at, []).append(index)
     for members in groups.values():
@@ -122,6 +132,7 @@ def row_of(cell: Cell, versus: dict[str, str] | None = None) -> dict[str, str]:
         "frame_stride": str(cell.frame_stride),
         "seeds": " ".join(UNKNOWN if seed is None else str(seed) for seed in cell.seeds),
         "tosses": str(cell.n_trajectories),
+        OWN_ENGINE: "yes" if cell.own_engine else "",
     }
     for metric in METRICS:
         interval = cell.interval(metric)
@@ -140,6 +151,7 @@ def read_rows(path: Path) -> list[dict]:
             rows = list(csv.DictReader(handle))
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise ContactbenchError(f"{path}: cannot be read as a results file ({error})") from None
+    rows = [{OWN_ENGINE: "", **row} for row in rows]  # a file from before the column: no cell was marked
     missing = [key for key in HEADER if rows and key not in rows[0]]
     if not rows or missing:
         raise ContactbenchError(

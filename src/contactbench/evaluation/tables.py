@@ -34,6 +34,8 @@ COLUMNS = [
 MILLIMETRES = {"floor_penetration_m", "floor_penetration_true_m", "interbody_penetration_m"}
 # In the grid, beside a model whose test position error is not significantly different from the row's best.
 NOT_SEPARABLE = "†"
+# Beside a model scoring data its own engine made (Cell.own_engine), which no ranking of the row counts.
+OWN_ENGINE = "‡"
 # Beside an interval over the seeds' means (unmarked: over the test tosses).
 OVER_SEEDS = "ˢ"
 # The grid's and the sensitivity tables' metrics that each row compares between models, by their short names.
@@ -144,7 +146,11 @@ def grid_markdown(rows: list[dict]) -> str:
     ]
     order = lambda item: (item[0][0], variant_order(item[0][1]), item[0][2])  # noqa: E731
     for (dataset, variant, budget), by_model in sorted(grid.items(), key=order):
-        tests = {model: splits["test"] for model, splits in by_model.items() if "test" in splits}
+        tests = {
+            model: splits["test"]
+            for model, splits in by_model.items()
+            if "test" in splits and not splits["test"].own_engine
+        }
         best = min(tests, key=lambda model: tests[model].mean("pos_err")) if len(tests) > 1 else None
         ties, position = _ties(tests)
         entries = []
@@ -155,12 +161,15 @@ def grid_markdown(rows: list[dict]) -> str:
                 text = f"**{text}**"
             elif best is not None and frozenset((model, best)) in position:
                 text += f" {NOT_SEPARABLE}"
+            if "test" in splits and splits["test"].own_engine:
+                text += f" {OWN_ENGINE}"
             entries.append(text)
         label = variants.label(dataset, variant)
         lines.append(f"| {dataset} | {label} | {budget} | " + " | ".join(entries) + f" | {ties} |")
     note = intervals_note() + (
         f"The lowest mean test position error of a row is in bold; {NOT_SEPARABLE} marks a model whose difference from "
-        "it is not significant.\n"
+        f"it is not significant; {OWN_ENGINE} marks a model that simulates with the engine that made the data (it "
+        "recovers that engine's own settings, and no ranking counts it).\n"
     )
     return mixed_budgets(rows, "this table") + "\n".join(lines) + "\n" + note
 

@@ -28,6 +28,10 @@ class ContactModel(ABC):
     """A contact model. `fit` may use only the train and val splits; `rollout` only the context."""
 
     name: str = "model"
+    # The simulator it rolls out with (sim/engines.py: mujoco, bullet, drake), None for one that simulates by itself (a
+    # learned model). On data that engine made, its score says how well it finds its own parameters, not how good it
+    # is: the report marks it (runs.own_engine).
+    engine: str | None = None
 
     def fit(self, dataset: Recordings) -> None:  # noqa: B027 (optional: analytical models have nothing to fit)
         """Fit on dataset.split('train'); select on dataset.split('val')."""

@@ -18,6 +18,8 @@ ENGINE_CLASSES = {
     "bullet": "contactbench.sim.bullet_engine:BulletEngine",
     "drake": "contactbench.sim.drake_engine:DrakeEngine",
 }
+# Engine name -> the package a generator names in a dataset's meta.generator.engine.
+ENGINE_PACKAGES = {"mujoco": "mujoco", "bullet": "pybullet", "drake": "drake"}
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,13 @@ def engine(name: str) -> Engine:
         raise ContactbenchError(f"unknown engine {name!r} (expected one of {', '.join(ENGINE_CLASSES)})")
     module, _, attribute = ENGINE_CLASSES[name].partition(":")
     return getattr(importlib.import_module(module), attribute)()
+
+
+def made_by(engine_name: str | None, meta: Mapping) -> bool:
+    """Whether the engine `engine_name` (None: no engine) generated the data whose meta.json is `meta`."""
+    generator = meta.get("generator")
+    made = generator.get("engine") if isinstance(generator, Mapping) else None
+    return engine_name is not None and made is not None and ENGINE_PACKAGES.get(engine_name) == made
 
 
 def require_flat(scene: Scene, engine_name: str) -> None:

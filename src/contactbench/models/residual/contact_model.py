@@ -19,6 +19,7 @@ class ResidualContactModel(ContactModel):
     learned correction is applied to every body (projected: see `correction`), MuJoCo steps on."""
 
     name = "residual"
+    engine = "mujoco"
 
     def __init__(
         self,
