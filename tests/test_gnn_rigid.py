@@ -302,7 +302,10 @@ def test_a_run_resumed_mid_epoch_trains_exactly_as_an_uninterrupted_one(tmp_path
             max_steps=max_steps,
             limit_val_batches=0,
             logger=False,
-            callbacks=[*callbacks, WeightAveraging(multi_avg_fn=get_ema_multi_avg_fn(0.9))],  # as gnn.yaml
+            callbacks=[
+                *callbacks,
+                WeightAveraging(multi_avg_fn=get_ema_multi_avg_fn(0.9), use_buffers=False),
+            ],  # as gnn.yaml
             enable_checkpointing=bool(callbacks),
             enable_progress_bar=False,
             enable_model_summary=False,

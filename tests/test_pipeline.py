@@ -146,9 +146,10 @@ def test_a_setting_chosen_on_val_is_the_best_candidate_and_evaluate_scores_it(tm
     assert document["pos_err"] == pytest.approx(val_pos_err)
 
 
-def test_a_setting_chosen_early_goes_on_alone_and_a_resumed_run_keeps_the_choice(tmp_path):
+def test_a_setting_chosen_early_goes_on_alone_ends_as_its_fit_alone_and_a_resumed_run_keeps_the_choice(tmp_path):
     """choose_at_step: every setting trains to that step, the one best on val so far goes on to max_steps (resumed
-    from its checkpoint there), the others keep their score at that step; a run resumed after the choice keeps it."""
+    from its checkpoint there, it ends bit for bit as its uninterrupted fit: the weight average keeps the buffers in
+    step), the others keep their score at that step; a run resumed after the choice keeps it."""
     grid = ["dataset=contactnets_cube", "model=gnn", "budget=smoke", "~model.choose_on_val"]
     steps = ["model.budgets.smoke.max_steps=30", "model.budgets.smoke.val_check_interval=10"]
     overrides = [*grid, *steps, "+model.choose_on_val.module.lr=[1e-3,3e-2]", "model.budgets.smoke.choose_at_step=10"]
@@ -166,6 +167,20 @@ def test_a_setting_chosen_early_goes_on_alone_and_a_resumed_run_keeps_the_choice
     at_ten = {f"lr={entry['setting']['module.lr']:g}": entry["val_pos_err"] for entry in record["candidates"]}
     assert at_ten[winner] <= at_ten[loser]
     assert {f"lr={e['setting']['module.lr']:g}": e["val_pos_err"] for e in fitted["candidates"]}[loser] == at_ten[loser]
+    # the winner, paused at step 10 and resumed, ends with the very weights of its fit alone, uninterrupted
+    alone_dir = tmp_path / "alone"
+    lr = fitted["chosen_on_val"]["module.lr"]
+    runs.train(compose_config("train", [*grid, *steps, f"+model.choose_on_val.module.lr=[{lr}]"], tmp_path), alone_dir)
+    for checkpoint in ("best", "last"):
+        resumed, alone = (
+            torch.load(folder / "checkpoints" / winner / f"{checkpoint}.ckpt", weights_only=True)
+            for folder in (run_dir, alone_dir)
+        )
+        for part in ("state_dict", "current_model_state"):
+            for name, value in alone[part].items():
+                torch.testing.assert_close(
+                    resumed[part][name], value, atol=0, rtol=0, msg=f"{checkpoint} {part} {name}"
+                )
     # resumed after the choice: the record holds it (the winner's own best is now past step 10), nothing trains again
     (run_dir / "fitted.json").unlink()
     runs.train(compose_config("train", [*overrides, "resume=true"], tmp_path), run_dir)

@@ -87,7 +87,7 @@ def choose_settings(
     max_steps), and the one with the lowest val/pos_err so far is then resumed to max_steps: settings x D +
     (max_steps - D) steps instead of settings x max_steps. The others keep their score at D, which
     checkpoints/chosen_at_step.json records once they are all there, so that a run killed afterwards resumes the same
-    choice. A resumed fit is the uninterrupted one up to the weight average's state (docs/SPEED.md)."""
+    choice. The leader ends bit for bit as its uninterrupted fit would have."""
     stop_at = cfg.model.get("choose_at_step")
     record = output_dir / "checkpoints" / "chosen_at_step.json"
     fitted = read_choice(record, stop_at, candidates) if stop_at and cfg.resume and record.exists() else None
