@@ -151,7 +151,7 @@ def test_a_setting_chosen_early_goes_on_alone_ends_as_its_fit_alone_and_a_resume
     from its checkpoint there, it ends bit for bit as its uninterrupted fit: the weight average keeps the buffers in
     step), the others keep their score at that step; a run resumed after the choice keeps it."""
     grid = ["dataset=contactnets_cube", "model=gnn", "budget=smoke", "~model.choose_on_val"]
-    steps = ["model.budgets.smoke.max_steps=30", "model.budgets.smoke.val_check_interval=10"]
+    steps = ["model.budgets.smoke.max_steps=20", "model.budgets.smoke.val_check_interval=10"]
     overrides = [*grid, *steps, "+model.choose_on_val.module.lr=[1e-3,3e-2]", "model.budgets.smoke.choose_at_step=10"]
     run_dir = tmp_path / "train-run"
     runs.train(compose_config("train", overrides, tmp_path), run_dir)
@@ -162,7 +162,7 @@ def test_a_setting_chosen_early_goes_on_alone_ends_as_its_fit_alone_and_a_resume
     def step(name: str, checkpoint: str = "last") -> int:
         return torch.load(run_dir / "checkpoints" / name / f"{checkpoint}.ckpt", weights_only=True)["global_step"]
 
-    assert fitted["chosen_at_step"] == 10 and (step(winner), step(loser)) == (30, 10)
+    assert fitted["chosen_at_step"] == 10 and (step(winner), step(loser)) == (20, 10)
     record = json.loads((run_dir / "checkpoints" / "chosen_at_step.json").read_text())
     at_ten = {f"lr={entry['setting']['module.lr']:g}": entry["val_pos_err"] for entry in record["candidates"]}
     assert at_ten[winner] <= at_ten[loser]
@@ -185,7 +185,7 @@ def test_a_setting_chosen_early_goes_on_alone_ends_as_its_fit_alone_and_a_resume
     (run_dir / "fitted.json").unlink()
     runs.train(compose_config("train", [*overrides, "resume=true"], tmp_path), run_dir)
     assert json.loads((run_dir / "fitted.json").read_text())["candidates"] == fitted["candidates"]
-    assert (step(winner), step(loser)) == (30, 10)
+    assert (step(winner), step(loser)) == (20, 10)
     record["candidates"][0]["checkpoint"] = "../../elsewhere.ckpt"
     (run_dir / "checkpoints" / "chosen_at_step.json").write_text(json.dumps(record))
     with pytest.raises(ContactbenchError, match=r"chosen_at_step\.json: field 'checkpoint' must be lr="):
