@@ -56,7 +56,8 @@ HEADER = [
 ]
 
 
-# The cells ranked against each other (versus_best): a report replaces a group whole or leaves it as it was.
+# The cells ranked against each other (versus_best; Cell attributes and row columns alike): a report replaces a group
+# whole or leaves it as it was.
 GROUP = ("dataset", "variant", "split", "budget", "noise_mm", "frame_stride")
 
 
@@ -104,8 +105,7 @@ def versus_best(cells: list[Cell]) -> list[dict[str, str]]:
     for index, cell in enumerate(cells):
         if cell.own_engine:
             continue
-        at = (cell.dataset, cell.variant, cell.split, cell.budget, cell.noise_mm, cell.frame_stride)
-        groups.setdefault(at, []).append(index)
+        groups.setdefault(tuple(getattr(cell, key) for key in GROUP), []).append(index)
     for members in groups.values():
         for metric, column in zip(RANKED, VERSUS_BEST):
             measured = [index for index in members if cells[index].mean(metric) is not None]
