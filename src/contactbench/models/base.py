@@ -30,7 +30,7 @@ class ContactModel(ABC):
     name: str = "model"
     # The simulator it rolls out with (sim/engines.py: mujoco, bullet, drake), None for one that simulates by itself (a
     # learned model). On data that engine made, its score says how well it finds its own parameters, not how good it
-    # is: the report marks it (runs.own_engine).
+    # is: runs.py marks its scores so (sim/engines.made_by) and the report ranks it with none.
     engine: str | None = None
 
     def fit(self, dataset: Recordings) -> None:  # noqa: B027 (optional: analytical models have nothing to fit)
