@@ -75,16 +75,16 @@ def variant_order(variant: str) -> tuple:
         return (1, 0.0, variant)
 
 
+def order(
+    dataset: str, variant: str, budget: str | None, noise_mm: float, frame_stride: int, model: str, split: str
+) -> tuple:
+    """Where a cell goes in a table or a results file: by dataset, variant (variant_order), budget, noise, stride,
+    model and split."""
+    return (dataset, variant_order(variant), budget or "", float(noise_mm), int(frame_stride), model, split)
+
+
 def cell_order(cell: Cell) -> tuple:
-    return (
-        cell.dataset,
-        variant_order(cell.variant),
-        cell.budget or "",
-        cell.noise_mm,
-        cell.frame_stride,
-        cell.model,
-        cell.split,
-    )
+    return order(cell.dataset, cell.variant, cell.budget, cell.noise_mm, cell.frame_stride, cell.model, cell.split)
 
 
 def cells_of(rows: list[dict]) -> list[Cell]:

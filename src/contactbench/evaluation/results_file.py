@@ -16,7 +16,7 @@ import numpy as np
 
 from contactbench import atomic, provenance, variants
 from contactbench.errors import ContactbenchError
-from contactbench.evaluation.cells import METRICS, Cell, difference, variant_order
+from contactbench.evaluation.cells import METRICS, Cell, difference, order
 
 UNKNOWN = "unknown"
 # paper_variant: yes where conf/variant/ names the variant, no for a custom one (friction=0.3), empty for a recorded
@@ -161,16 +161,9 @@ def read_rows(path: Path) -> list[dict]:
 
 
 def _row_order(row: dict[str, str]) -> tuple:
-    """cells.cell_order, read from a written row."""
-    return (
-        row["dataset"],
-        variant_order(row["variant"]),
-        row["budget"],
-        float(row["noise_mm"]),
-        int(row["frame_stride"]),
-        row["model"],
-        row["split"],
-    )
+    """A written row's place: as its cell's (cells.order)."""
+    keys = ("dataset", "variant", "budget", "noise_mm", "frame_stride", "model", "split")
+    return order(*(row[key] for key in keys))
 
 
 def merged(path: Path, rows: list[dict[str, str]]) -> list[dict[str, str]]:
