@@ -1,15 +1,23 @@
-"""Calibrate diagnosis.predictable on null datasets and show that it detects concealed effects.
+"""Calibrate diagnosis.predictable on null datasets, for every base the diagnosis can name on, and show that it
+detects concealed effects.
 
-Generates (once) null datasets (nothing concealed: cubes of several seeds and other solids) and datasets with one
-concealed effect, fits the base simulator of each at the quick budget (once: the fitted values and robust scale are
-cached as JSON under data/predictable/cache/, refitted when the base hypothesis' parameters change), runs
-predictable.check on it and prints one line and one table row per dataset: each statistic's val and test gain with
-the lower ends of their 95% intervals, which pass their null bounds, where and on what. On the calibration set it
-also prints the bounds its nulls give (largest upper interval end + predictable.NULL_MARGIN), the values of
-predictable.NULL_GAIN_BOUNDS. The held-out sets were run once each, after the bounds were set. Records are kept in
-data/predictable/results_<set>.json (git-ignored, as everything under data/).
+Generates (once) null datasets (nothing concealed) and datasets with one concealed effect, fits each base simulator on
+each at the quick budget as the diagnosis fits it (the diagnosis' own MuJoCo base; with --engines, every contact option
+of those engines too: their law searched as diagnosis.contact_law searches it, then refitted as the pipeline refits
+the base it names on), runs predictable.check on each base and prints one line and one table row per dataset and base:
+each statistic's val and test gain with the lower ends of their 95% intervals, which pass their null bounds, where and
+on what, and whether the open-world correction (diagnosis.open_world) passes. Fits are cached as JSON under
+data/predictable/cache/ (refitted when a base's parameters change). After a run it prints, per base, the bounds the
+nulls of the calibration sets give (largest upper interval end + predictable.NULL_MARGIN): the values of
+predictable.NULL_GAIN_BOUNDS. Records are kept in data/predictable/results_<set>.json (git-ignored, as all of data/).
 
-    python benchmarks/predictable_calibration.py                    # the calibration set (~20 s a case the first time)
+The sets: `calibration` (the project's own generator: the nulls that set the bounds, and effects), `independent_nulls`
+(nulls of benchmarks/independent_generator.py at seeds no blind set uses: PyBullet stepped and materialled otherwise,
+so that no base matches them exactly, as none matches a blind set or real recordings), and the held-out sets, run
+once each after the bounds they test were set.
+
+    python benchmarks/predictable_calibration.py                    # the calibration set, MuJoCo base
+    python benchmarks/predictable_calibration.py --set independent_nulls --engines mujoco bullet drake
     python benchmarks/predictable_calibration.py --set held_out     # other seeds, shapes and strengths
     python benchmarks/predictable_calibration.py --only cube_seed0  # the cases whose name contains it
     python benchmarks/predictable_calibration.py --fit-only         # generate and fit, no check
@@ -23,15 +31,18 @@ import math
 import time
 from pathlib import Path
 
+import independent_generator  # beside this script
 import numpy as np
 import torch
 from diagnosis_proof import SHAPES  # beside this script: the proof's shapes, at the same nominal contact
 
-from contactbench.diagnosis import predictable
+from contactbench.diagnosis import contact_law, open_world, predictable
+from contactbench.diagnosis.bases import engine_bases
 from contactbench.diagnosis.library import Hypothesis
 from contactbench.diagnosis.state import Budget, Diagnosis
 from contactbench.generation.generator import generate_dataset
 from contactbench.recordings import read_recordings
+from contactbench.sim.engines import engine
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data" / "predictable"
@@ -72,8 +83,23 @@ HELD_OUT_2 = (
     ("tetrahedron", 5, ("floor_viscosity",), 2.0),
     ("icosahedron", 5, ("floor_centring",), 1.0),
 )
+# Nulls of the independent generator: (shape, seed, recorded velocities). Seeds 901-910; the blind sets use 101-616.
+INDEPENDENT_NULLS = (
+    *(
+        (shape, 901 + n, True)
+        for n, shape in enumerate(
+            ("cube", "plate", "brick", "tetrahedron", "octahedron", "dodecahedron", "icosahedron")
+        )
+    ),
+    ("cube", 908, False),
+    ("plate", 909, False),
+    ("icosahedron", 910, False),
+)
+# The sets whose nulls set the bounds; the others are held out.
+BOUND_SETS = ("calibration", "independent_nulls")
 SETS = {
     "calibration": (*NULLS, *EFFECTS),
+    "independent_nulls": INDEPENDENT_NULLS,
     "held_out": (*HELD_OUT_NULLS, *HELD_OUT_EFFECTS),
     "held_out_2": HELD_OUT_2,
 }
@@ -87,6 +113,12 @@ def case_name(shape: str, seed: int, effects: tuple[str, ...], strength: float) 
 def cases(which: str) -> list[tuple[str, Path]]:
     """(name, recordings directory) of every case of a set, generating the synthetic ones that are missing."""
     found = []
+    if which == "independent_nulls":
+        for shape, seed, velocities in INDEPENDENT_NULLS:
+            case = {"shape": shape, "seed": seed, "effect": None, "strength": 0.0, "velocities": velocities}
+            path = independent_generator.generate_case(case, DATA / "independent")
+            found.append((f"independent_{shape}_seed{seed}_null" + ("" if velocities else "_novel"), path))
+        return found
     for shape, seed, effects, strength in SETS[which]:
         name = case_name(shape, seed, effects, strength)
         path = DATA / name
@@ -105,73 +137,124 @@ def cases(which: str) -> list[tuple[str, Path]]:
     return [*found, ("real_cube", REAL_CUBE)] if which == "calibration" else found
 
 
+def _cached(cache: Path, keys: list[str]) -> dict:
+    """A base's cached fit (values, robust scale), if it was made for these parameters."""
+    stored = json.loads(cache.read_text()) if cache.exists() else {}
+    return stored if stored.get("keys") == keys else {}
+
+
+def _store(cache: Path, keys: list[str], values: np.ndarray, scale: float, seconds: float) -> None:
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps({"keys": keys, "values": values.tolist(), "scale": scale, "fit_s": seconds}))
+
+
+def _slug(label: str) -> str:
+    return label.replace(" (", "_").replace(" contact)", "").replace(" ", "_")
+
+
 def fitted(name: str, path: Path) -> tuple[Diagnosis, Hypothesis, np.ndarray]:
-    """The diagnosis steps with the base simulator fitted at the quick budget, from the cache when it has them."""
+    """The diagnosis steps with the diagnosis' own MuJoCo base fitted at the quick budget, from the cache when it has
+    them."""
     steps = Diagnosis(read_recordings(path).for_models(["train", "val", "test"]), Budget())
     base = Hypothesis(steps.dataset.n_bodies)
     cache = DATA / "cache" / f"{name}.json"
-    stored = json.loads(cache.read_text()) if cache.exists() else {}
-    if stored.get("keys") == base.keys():  # a cache of another base hypothesis (its parameters changed) is refitted
+    stored = _cached(cache, base.keys())
+    if stored:
         values = np.array(stored["values"])
         # fit_base leaves both fits scored with the robust scale calibrated on train
         steps.train_fit.scale = steps.val_fit.scale = stored["scale"]
     else:
         started = time.perf_counter()
         base, values = steps.fit_base()
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        cache.write_text(
-            json.dumps(
-                {
-                    "keys": base.keys(),
-                    "values": values.tolist(),
-                    "scale": steps.train_fit.scale,
-                    "fit_s": time.perf_counter() - started,
-                }
-            )
-        )
+        _store(cache, base.keys(), values, steps.train_fit.scale, time.perf_counter() - started)
     return steps, base, values
+
+
+def fitted_bases(name: str, path: Path, engines: list[str]) -> list[tuple[str, Diagnosis, Hypothesis, np.ndarray]]:
+    """(label, steps, base, values) of every base of `engines`: MuJoCo's as fitted(); every other engine's contact
+    options searched as diagnosis.contact_law searches them (from the MuJoCo fit's robust scale), then each refitted on
+    steps of its own as the pipeline refits the base it names on (Diagnosis.use_engine, fit_base from the law)."""
+    steps, base, values = fitted(name, path)
+    bases = [("mujoco", steps, base, values)] if "mujoco" in engines else []
+    for engine_name in (e for e in engines if e != "mujoco"):
+        laws = None
+        for option in engine_bases(engine_name, steps.dataset.n_bodies, len(steps.dataset.joints)):
+            own = Diagnosis(steps.dataset, Budget())
+            own.train_fit.scale = own.val_fit.scale = steps.train_fit.scale
+            own.use_engine(engine_name, engine(engine_name).library_effects(steps.dataset))
+            hypothesis = Hypothesis(steps.dataset.n_bodies, base=option)
+            cache = DATA / "cache" / f"{name}_{_slug(option.label)}.json"
+            stored = _cached(cache, hypothesis.keys())
+            if stored:
+                law_values = np.array(stored["values"])
+                own.train_fit.scale = own.val_fit.scale = stored["scale"]
+            else:
+                started = time.perf_counter()
+                if laws is None:
+                    laws, _ = contact_law.fit_engines(steps, base, values, ("mujoco", engine_name))
+                law = next(c for c in laws if c.label == option.label)
+                hypothesis, law_values = own.fit_base(law.hypothesis, law.values)
+                _store(cache, hypothesis.keys(), law_values, own.train_fit.scale, time.perf_counter() - started)
+            bases.append((option.label, own, hypothesis, law_values))
+    return bases
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default="", help="run the cases whose name contains this")
     parser.add_argument("--set", default="calibration", choices=sorted(SETS), help="which cases")
+    parser.add_argument(
+        "--engines", nargs="+", default=["mujoco"], choices=contact_law.ENGINES, help="the bases' engines"
+    )
     parser.add_argument("--fit-only", action="store_true", help="generate and fit the base simulators, no check")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    results = {}
     out = DATA / f"results_{args.set}.json"
-    if out.exists():
-        results = json.loads(out.read_text())
+    results = json.loads(out.read_text()) if out.exists() else {}  # {base label: {case: record}}
     for name, path in cases(args.set):
         if args.only not in name:
             continue
-        steps, base, values = fitted(name, path)
-        if args.fit_only:
-            print(name, "fitted", flush=True)
-            continue
-        started = time.perf_counter()
-        record = predictable.check(steps, base, values)
-        record["check_s"] = time.perf_counter() - started
-        results[name] = record
-        out.write_text(json.dumps(results, indent=1))
-        print(f"{name:42s} {record['check_s']:5.1f} s  {record['sentence']}", flush=True)
-    print(predictable.calibration_table(results))
-    if args.set == "calibration":
-        print(null_bounds(results))
+        for label, steps, base, values in fitted_bases(name, path, args.engines):
+            if args.fit_only:
+                print(name, label, "fitted", flush=True)
+                continue
+            started = time.perf_counter()
+            record = predictable.check(steps, base, values)
+            record["check_s"] = time.perf_counter() - started
+            world = open_world.explain(steps, base, values)
+            record["open_world"] = {key: world.get(key) for key in ("passes", "val_improvement", "ci95")}
+            steps.close()
+            results.setdefault(label, {})[name] = record
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(results, indent=1))
+            print(f"{name:42s} {label:28s} {record['check_s']:5.1f} s  {record['sentence']}", flush=True)
+    for label, records in results.items():
+        print(f"\n## base: {label}\n")
+        print(predictable.calibration_table(records))
+    print(null_bounds())
 
 
-def null_bounds(results: dict[str, dict]) -> str:
-    """NULL_GAIN_BOUNDS as the null records give them: per statistic, the largest upper end of the val and test
-    intervals over the nulls, plus the margin, rounded up to 0.001; with the null that set it."""
-    nulls = [name for name in results if "_null_" in name]
-    lines = [f"NULL_GAIN_BOUNDS from {len(nulls)} nulls = {{"]
-    for statistic in predictable.STATISTICS:
-        worst, name = max(
-            (max(results[n][split]["statistics"][statistic]["ci95"][1] for split in ("val", "test")), n) for n in nulls
-        )
-        bound = math.ceil((worst + predictable.NULL_MARGIN) * 1000) / 1000
-        lines.append(f'    "{statistic}": {bound:.3f},  # {name}: {worst:.3f}')
+def null_bounds() -> str:
+    """NULL_GAIN_BOUNDS as the null records of BOUND_SETS give them, per base: per statistic, the largest
+    upper end of the val and test intervals over the nulls, plus the margin, rounded up to 0.001; with the null that
+    set it. And how many of a base's nulls the open-world correction passed on (each a false alarm)."""
+    by_base: dict[str, dict[str, dict]] = {}
+    for which in BOUND_SETS:
+        results = DATA / f"results_{which}.json"
+        for label, records in (json.loads(results.read_text()) if results.exists() else {}).items():
+            by_base.setdefault(label, {}).update({n: r for n, r in records.items() if "_null" in n})
+    lines = ["NULL_GAIN_BOUNDS = {"]
+    for label, nulls in by_base.items():
+        world = sum(bool((record.get("open_world") or {}).get("passes")) for record in nulls.values())
+        lines.append(f'    "{label}": {{  # {len(nulls)} nulls; the open-world correction passed on {world}')
+        for statistic in predictable.STATISTICS:
+            worst, name = max(
+                (max(nulls[n][split]["statistics"][statistic]["ci95"][1] for split in ("val", "test")), n)
+                for n in nulls
+            )
+            bound = math.ceil((worst + predictable.NULL_MARGIN) * 1000) / 1000
+            lines.append(f'        "{statistic}": {bound:.3f},  # {name}: {worst:.3f}')
+        lines.append("    },")
     return "\n".join([*lines, "}"])
 
 

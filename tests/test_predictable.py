@@ -184,6 +184,17 @@ def test_a_null_does_not_pass_and_the_check_is_deterministic_and_leaves_the_pipe
     assert predictable.check(steps, base, values, quick) == record
     record = predictable.check(steps, base, values)
     assert not record["passes"] and record["beyond_nulls"] == []
-    for name, bound in predictable.NULL_GAIN_BOUNDS.items():
+    assert record["null_gain_bounds"] == predictable.NULL_GAIN_BOUNDS["mujoco"]  # the MuJoCo base's own bounds
+    for name, bound in record["null_gain_bounds"].items():
         assert record["test"]["statistics"][name]["ci95"][0] <= bound
     assert "no more than on null data" in record["sentence"]
+
+
+def test_a_base_never_calibrated_is_held_to_the_largest_bound_of_any_base():
+    uncalibrated = predictable.null_gain_bounds("an engine nobody calibrated")
+    assert set(uncalibrated) == set(predictable.STATISTICS)
+    for name, bound in uncalibrated.items():
+        assert bound == max(bounds[name] for bounds in predictable.NULL_GAIN_BOUNDS.values())
+    for label, bounds in predictable.NULL_GAIN_BOUNDS.items():
+        assert set(bounds) == set(predictable.STATISTICS), label
+        assert predictable.null_gain_bounds(label) == bounds

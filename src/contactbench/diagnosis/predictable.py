@@ -57,29 +57,42 @@ PARTS = {
 DEPENDENCES = (*GROUPS, "heading", "constant")
 STATISTICS = (*PARTS, *DEPENDENCES)
 # The bound each statistic must pass, on val and on test (the lower end of the 95% interval above it), before the
-# correction counts as gaining more than with nothing missing: the largest upper end of that statistic's val and test
-# intervals over the calibration's null datasets (nothing concealed; quick budget, Settings() as below), plus
-# NULL_MARGIN. Measured by benchmarks/predictable_calibration.py with the base simulator of library.base_parameters as
-# it stands (friction, floor stiffness and damping, the floor's solimp impedance); a change of the base simulator, of
-# the features or of Settings needs a new calibration. The nulls, and which of them set each bound:
-# docs/results/calibration.md. Impacts and the contact normal get the highest bounds because the engines' impact
-# laws and MuJoCo's soft contact differ from PyBullet's with nothing concealed; the floor position the lowest, since a
+# correction counts as gaining more than with nothing missing, for each base the correction is fitted on (the law named
+# on, diagnosis.bases: EngineBase.label; "mujoco" is the diagnosis' own MuJoCo base): the largest upper end of that
+# statistic's val and test intervals over the calibration's null datasets (nothing concealed; quick budget, Settings()
+# as below), plus NULL_MARGIN. Measured by benchmarks/predictable_calibration.py with each base fitted as the diagnosis
+# fits it; a change of a base's fit, of the features or of Settings needs a new calibration. The nulls, and which of
+# them set each bound: docs/results/calibration.md. A base with no calibration of its own is judged against the
+# largest bound of any base (null_gain_bounds). Impacts and the contact normal get the highest bounds because the
+# engines' impact laws and soft contacts differ with nothing concealed; the floor position the lowest, since a
 # homogeneous floor leaves nothing to read from the place.
 NULL_MARGIN = 0.01  # of the base loss: beyond the null intervals' own width, room for shapes not measured
 NULL_GAIN_BOUNDS = {
-    "free": 0.025,
-    "impact": 0.137,
-    "contact_normal": 0.088,
-    "contact_tangential": 0.088,
-    "direction": 0.123,
-    "speed": 0.060,
-    "spin": 0.054,
-    "impact_speed": 0.035,
-    "height_orientation": 0.030,
-    "floor_position": 0.013,
-    "heading": 0.016,
-    "constant": 0.082,
+    "mujoco": {
+        "free": 0.025,
+        "impact": 0.137,
+        "contact_normal": 0.088,
+        "contact_tangential": 0.088,
+        "direction": 0.123,
+        "speed": 0.060,
+        "spin": 0.054,
+        "impact_speed": 0.035,
+        "height_orientation": 0.030,
+        "floor_position": 0.013,
+        "heading": 0.016,
+        "constant": 0.082,
+    },
 }
+
+
+def null_gain_bounds(label: str) -> dict[str, float]:
+    """The null bounds of a base (its label), or, for a base never calibrated, each statistic's largest bound over the
+    calibrated bases: a correction of an uncalibrated base must gain more than any calibrated base gains on nulls."""
+    if label in NULL_GAIN_BOUNDS:
+        return dict(NULL_GAIN_BOUNDS[label])
+    return {name: max(bounds[name] for bounds in NULL_GAIN_BOUNDS.values()) for name in STATISTICS}
+
+
 STATISTIC_WORDS = {
     "free": "in free flight",
     "impact": "at impacts",
@@ -154,9 +167,11 @@ def shares(values: dict[str, float]) -> dict[str, float]:
     return {key: value / total if total > 0 else 0.0 for key, value in clipped.items()}
 
 
-def excess(record: dict, name: str, bounds: dict[str, float] = NULL_GAIN_BOUNDS) -> float:
-    """How far a statistic's lower interval end, the smaller of val's and test's, lies above its null bound."""
-    return min(record[split]["statistics"][name]["ci95"][0] for split in ("val", "test")) - bounds[name]
+def excess(record: dict, name: str) -> float:
+    """How far a statistic's lower interval end, the smaller of val's and test's, lies above its null bound (the
+    record's `null_gain_bounds`)."""
+    lowest = min(record[split]["statistics"][name]["ci95"][0] for split in ("val", "test"))
+    return lowest - record["null_gain_bounds"][name]
 
 
 def located(record: dict, correction: Correction, val: Inputs, settings: Settings) -> tuple[str, str, dict]:
@@ -227,7 +242,8 @@ def check(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray, settings
     than on null data (`passes`), and a sentence for the report. The record:
 
     - val, test: gain and ci95 of the whole correction, and `statistics` (STATISTICS: gain, ci95 each);
-    - beyond_nulls: the statistics above their NULL_GAIN_BOUNDS on val and test; passes: any;
+    - beyond_nulls: the statistics above their null bounds (of the hypothesis' base: null_gain_bounds) on val
+      and test; passes: any;
     - phase, depends_on, depends_on_by_phase: where and on what (located());
     - phase_shares: share of the closed val loss by the phase of the states where the correction acts;
     - dependence: per group, its gain on val as a share of the whole (above 1 where shuffled states make the
@@ -259,7 +275,7 @@ def check(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray, settings
             group: max(record["val"]["statistics"][group]["gain"] / full, 0.0) if full > 0 else 0.0
             for group in DEPENDENCES
         }
-        record["null_gain_bounds"] = dict(NULL_GAIN_BOUNDS)
+        record["null_gain_bounds"] = null_gain_bounds(base_label(hypothesis))
         record["beyond_nulls"] = beyond_nulls(record)
         record["passes"] = bool(record["beyond_nulls"])
         record["phase"], record["depends_on"], record["depends_on_by_phase"] = located(
@@ -271,10 +287,15 @@ def check(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray, settings
         torch.set_num_threads(torch_threads)
 
 
-def beyond_nulls(record: dict, bounds: dict[str, float] = NULL_GAIN_BOUNDS) -> list[str]:
+def beyond_nulls(record: dict) -> list[str]:
     """The statistics in which the correction gains more than on any null: both the val and the test interval above
     the statistic's bound."""
-    return [name for name in bounds if excess(record, name, bounds) > 0]
+    return [name for name in record["null_gain_bounds"] if excess(record, name) > 0]
+
+
+def base_label(hypothesis: Hypothesis) -> str:
+    """The base a hypothesis is fitted on, as NULL_GAIN_BOUNDS keys it."""
+    return "mujoco" if hypothesis.base is None else hypothesis.base.label
 
 
 def sentence(record: dict) -> str:
