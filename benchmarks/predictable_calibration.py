@@ -26,6 +26,7 @@ once each after the bounds they test were set.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import math
 import time
@@ -36,6 +37,7 @@ import numpy as np
 import torch
 from diagnosis_proof import SHAPES  # beside this script: the proof's shapes, at the same nominal contact
 
+from contactbench import atomic
 from contactbench.diagnosis import contact_law, open_world, predictable
 from contactbench.diagnosis.bases import engine_bases
 from contactbench.diagnosis.library import Hypothesis
@@ -224,9 +226,14 @@ def main() -> None:
             world = open_world.explain(steps, base, values)
             record["open_world"] = {key: world.get(key) for key in ("passes", "val_improvement", "ci95")}
             steps.close()
-            results.setdefault(label, {})[name] = record
+            # read again before writing, under a lock: two runs of the same set on different cases (--only) keep
+            # each other's records
             out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text(json.dumps(results, indent=1))
+            with open(out.with_suffix(".lock"), "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                results = json.loads(out.read_text()) if out.exists() else {}
+                results.setdefault(label, {})[name] = record
+                atomic.write_text(out, json.dumps(results, indent=1))
             print(f"{name:42s} {label:28s} {record['check_s']:5.1f} s  {record['sentence']}", flush=True)
     for label, records in results.items():
         print(f"\n## base: {label}\n")

@@ -12,7 +12,9 @@ import pytest
 from test_diagnose import CUBE
 
 from contactbench.diagnosis import open_world, predictable, predictable_correction, predictable_states
+from contactbench.diagnosis.bases import engine_bases
 from contactbench.diagnosis.fitting import ResidualFit
+from contactbench.diagnosis.library import Hypothesis
 from contactbench.diagnosis.phases import FREE, PHASES, REST, ROLLING, SLIDING
 from contactbench.diagnosis.segments import SegmentSimulator
 from contactbench.diagnosis.state import Budget, Diagnosis
@@ -198,3 +200,11 @@ def test_a_base_never_calibrated_is_held_to_the_largest_bound_of_any_base():
     for label, bounds in predictable.NULL_GAIN_BOUNDS.items():
         assert set(bounds) == set(predictable.STATISTICS), label
         assert predictable.null_gain_bounds(label) == bounds
+
+
+def test_a_correction_is_judged_against_the_null_bounds_of_the_base_it_corrects():
+    assert predictable.base_label(Hypothesis(1)) == "mujoco"
+    for engine_name in ("bullet", "drake"):
+        for option in engine_bases(engine_name, 1, 0):
+            label = predictable.base_label(Hypothesis(1, base=option))
+            assert label == option.label and label in predictable.NULL_GAIN_BOUNDS  # every base is calibrated
