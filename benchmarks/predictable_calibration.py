@@ -154,21 +154,24 @@ def _slug(label: str) -> str:
     return label.replace(" (", "_").replace(" contact)", "").replace(" ", "_")
 
 
+def _fit_once(steps: Diagnosis, hypothesis: Hypothesis, cache: Path, fit) -> tuple[Hypothesis, np.ndarray]:
+    """A base's values from its cache, with the robust scale fit_base calibrated on train (both fits are scored with
+    it), or `fit()` (hypothesis, values), cached."""
+    stored = _cached(cache, hypothesis.keys())
+    if stored:
+        steps.train_fit.scale = steps.val_fit.scale = stored["scale"]
+        return hypothesis, np.array(stored["values"])
+    started = time.perf_counter()
+    hypothesis, values = fit()
+    _store(cache, hypothesis.keys(), values, steps.train_fit.scale, time.perf_counter() - started)
+    return hypothesis, values
+
+
 def fitted(name: str, path: Path) -> tuple[Diagnosis, Hypothesis, np.ndarray]:
     """The diagnosis steps with the diagnosis' own MuJoCo base fitted at the quick budget, from the cache when it has
     them."""
     steps = Diagnosis(read_recordings(path).for_models(["train", "val", "test"]), Budget())
-    base = Hypothesis(steps.dataset.n_bodies)
-    cache = DATA / "cache" / f"{name}.json"
-    stored = _cached(cache, base.keys())
-    if stored:
-        values = np.array(stored["values"])
-        # fit_base leaves both fits scored with the robust scale calibrated on train
-        steps.train_fit.scale = steps.val_fit.scale = stored["scale"]
-    else:
-        started = time.perf_counter()
-        base, values = steps.fit_base()
-        _store(cache, base.keys(), values, steps.train_fit.scale, time.perf_counter() - started)
+    base, values = _fit_once(steps, Hypothesis(steps.dataset.n_bodies), DATA / "cache" / f"{name}.json", steps.fit_base)
     return steps, base, values
 
 
@@ -179,24 +182,27 @@ def fitted_bases(name: str, path: Path, engines: list[str]) -> list[tuple[str, D
     steps, base, values = fitted(name, path)
     bases = [("mujoco", steps, base, values)] if "mujoco" in engines else []
     for engine_name in (e for e in engines if e != "mujoco"):
-        laws = None
+        laws: list = []  # the engine's fitted laws, searched once when a first option is not cached
+
+        def refit(
+            own: Diagnosis, label: str, engine_name: str = engine_name, laws: list = laws
+        ) -> tuple[Hypothesis, np.ndarray]:
+            if not laws:
+                laws.extend(contact_law.fit_engines(steps, base, values, ("mujoco", engine_name))[0])
+            law = next(c for c in laws if c.label == label)
+            return own.fit_base(law.hypothesis, law.values)
+
         for option in engine_bases(engine_name, steps.dataset.n_bodies, len(steps.dataset.joints)):
             own = Diagnosis(steps.dataset, Budget())
             own.train_fit.scale = own.val_fit.scale = steps.train_fit.scale
             own.use_engine(engine_name, engine(engine_name).library_effects(steps.dataset))
-            hypothesis = Hypothesis(steps.dataset.n_bodies, base=option)
             cache = DATA / "cache" / f"{name}_{_slug(option.label)}.json"
-            stored = _cached(cache, hypothesis.keys())
-            if stored:
-                law_values = np.array(stored["values"])
-                own.train_fit.scale = own.val_fit.scale = stored["scale"]
-            else:
-                started = time.perf_counter()
-                if laws is None:
-                    laws, _ = contact_law.fit_engines(steps, base, values, ("mujoco", engine_name))
-                law = next(c for c in laws if c.label == option.label)
-                hypothesis, law_values = own.fit_base(law.hypothesis, law.values)
-                _store(cache, hypothesis.keys(), law_values, own.train_fit.scale, time.perf_counter() - started)
+            hypothesis, law_values = _fit_once(
+                own,
+                Hypothesis(steps.dataset.n_bodies, base=option),
+                cache,
+                lambda own=own, label=option.label: refit(own, label),
+            )
             bases.append((option.label, own, hypothesis, law_values))
     return bases
 
