@@ -147,7 +147,7 @@ def _cached(cache: Path, keys: list[str]) -> dict:
 
 def _store(cache: Path, keys: list[str], values: np.ndarray, scale: float, seconds: float) -> None:
     cache.parent.mkdir(parents=True, exist_ok=True)
-    cache.write_text(json.dumps({"keys": keys, "values": values.tolist(), "scale": scale, "fit_s": seconds}))
+    atomic.write_text(cache, json.dumps({"keys": keys, "values": values.tolist(), "scale": scale, "fit_s": seconds}))
 
 
 def _slug(label: str) -> str:
@@ -182,26 +182,27 @@ def fitted_bases(name: str, path: Path, engines: list[str]) -> list[tuple[str, D
     steps, base, values = fitted(name, path)
     bases = [("mujoco", steps, base, values)] if "mujoco" in engines else []
     for engine_name in (e for e in engines if e != "mujoco"):
-        laws: list = []  # the engine's fitted laws, searched once when a first option is not cached
-
-        def refit(
-            own: Diagnosis, label: str, engine_name: str = engine_name, laws: list = laws
-        ) -> tuple[Hypothesis, np.ndarray]:
-            if not laws:
-                laws.extend(contact_law.fit_engines(steps, base, values, ("mujoco", engine_name))[0])
-            law = next(c for c in laws if c.label == label)
-            return own.fit_base(law.hypothesis, law.values)
-
-        for option in engine_bases(engine_name, steps.dataset.n_bodies, len(steps.dataset.joints)):
+        options = engine_bases(engine_name, steps.dataset.n_bodies, len(steps.dataset.joints))
+        caches = {option.label: DATA / "cache" / f"{name}_{_slug(option.label)}.json" for option in options}
+        uncached = [
+            o for o in options if not _cached(caches[o.label], Hypothesis(steps.dataset.n_bodies, base=o).keys())
+        ]
+        # every option's law is searched in one call (as contact_law does), only if one of them is not cached
+        laws = (
+            {c.label: c for c in contact_law.fit_engines(steps, base, values, ("mujoco", engine_name))[0]}
+            if uncached
+            else {}
+        )
+        for option in options:
             own = Diagnosis(steps.dataset, Budget())
             own.train_fit.scale = own.val_fit.scale = steps.train_fit.scale
             own.use_engine(engine_name, engine(engine_name).library_effects(steps.dataset))
-            cache = DATA / "cache" / f"{name}_{_slug(option.label)}.json"
+            law = laws.get(option.label)
             hypothesis, law_values = _fit_once(
                 own,
                 Hypothesis(steps.dataset.n_bodies, base=option),
-                cache,
-                lambda own=own, label=option.label: refit(own, label),
+                caches[option.label],
+                lambda own=own, law=law: own.fit_base(law.hypothesis, law.values),
             )
             bases.append((option.label, own, hypothesis, law_values))
     return bases

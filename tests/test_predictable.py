@@ -203,8 +203,8 @@ def test_a_base_never_calibrated_is_held_to_the_largest_bound_of_any_base():
 
 
 def test_a_correction_is_judged_against_the_null_bounds_of_the_base_it_corrects():
-    assert predictable.base_label(Hypothesis(1)) == "mujoco"
+    assert Hypothesis(1).law == "mujoco"
     for engine_name in ("bullet", "drake"):
         for option in engine_bases(engine_name, 1, 0):
-            label = predictable.base_label(Hypothesis(1, base=option))
+            label = Hypothesis(1, base=option).law
             assert label == option.label and label in predictable.NULL_GAIN_BOUNDS  # every base is calibrated

@@ -232,6 +232,11 @@ class Hypothesis:
         return "mujoco" if self.base is None else self.base.engine
 
     @property
+    def law(self) -> str:
+        """The contact law it is fitted on, as the diagnosis labels laws: "mujoco", or the engine's base label."""
+        return "mujoco" if self.base is None else self.base.label
+
+    @property
     def base_fit_parameters(self) -> tuple[Parameter, ...]:
         return base_parameters(self.n_bodies) if self.base is None else self.base.parameters()
 

@@ -58,7 +58,7 @@ DEPENDENCES = (*GROUPS, "heading", "constant")
 STATISTICS = (*PARTS, *DEPENDENCES)
 # The bound each statistic must pass, on val and on test (the lower end of the 95% interval above it), before the
 # correction counts as gaining more than with nothing missing, for each base the correction is fitted on (the law named
-# on, diagnosis.bases: EngineBase.label; "mujoco" is the diagnosis' own MuJoCo base): the largest upper end of that
+# on, Hypothesis.law; "mujoco" is the diagnosis' own MuJoCo base): the largest upper end of that
 # statistic's val and test intervals over the calibration's null datasets (nothing concealed; quick budget, Settings()
 # as below), plus NULL_MARGIN. Measured by benchmarks/predictable_calibration.py with each base fitted as the diagnosis
 # fits it; a change of a base's fit, of the features or of Settings needs a new calibration. The nulls, and which of
@@ -317,7 +317,7 @@ def check(steps: Diagnosis, hypothesis: Hypothesis, values: np.ndarray, settings
             group: max(record["val"]["statistics"][group]["gain"] / full, 0.0) if full > 0 else 0.0
             for group in DEPENDENCES
         }
-        record["null_gain_bounds"] = null_gain_bounds(base_label(hypothesis))
+        record["null_gain_bounds"] = null_gain_bounds(hypothesis.law)
         record["beyond_nulls"] = beyond_nulls(record)
         record["passes"] = bool(record["beyond_nulls"])
         record["phase"], record["depends_on"], record["depends_on_by_phase"] = located(
@@ -333,11 +333,6 @@ def beyond_nulls(record: dict) -> list[str]:
     """The statistics in which the correction gains more than on any null: both the val and the test interval above
     the statistic's bound."""
     return [name for name in record["null_gain_bounds"] if excess(record, name) > 0]
-
-
-def base_label(hypothesis: Hypothesis) -> str:
-    """The base a hypothesis is fitted on, as NULL_GAIN_BOUNDS keys it."""
-    return "mujoco" if hypothesis.base is None else hypothesis.base.label
 
 
 def sentence(record: dict) -> str:
